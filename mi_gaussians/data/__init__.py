@@ -1,0 +1,1 @@
+"""Cameras, datasets and initial point clouds (numpy; no Dr.Jit state)."""

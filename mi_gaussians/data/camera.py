@@ -1,0 +1,206 @@
+"""The camera record: one pinhole camera in one convention (OpenCV axes, pixel centres at +0.5).
+
+A camera-space point ``(x, y, z)`` (x right, y down, z forward) projects to the pixel coordinates
+``(fx * x / z + cx, fy * y / z + cy)``; pixel ``(i, j)`` covers ``[i, i + 1) x [j, j + 1)`` and is sampled at its centre.
+COLMAP uses the same convention; Mitsuba's film agrees once its camera axes (x left, y up, z forward) are flipped.
+
+JSON form (``Camera.from_json`` / ``Camera.to_json``)::
+
+    {"width": 800, "height": 600, "fx": 700.0, "fy": 700.0, "cx": 400.0, "cy": 300.0,
+     "world_to_camera": [[r00, r01, r02, t0], [r10, r11, r12, t1], [r20, r21, r22, t2], [0, 0, 0, 1]],
+     "name": "optional"}
+
+``world_to_camera`` is row-major 4 x 4 (a list of 4 rows), OpenCV axes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+# OpenGL/Blender camera axes (x right, y up, z back) <-> OpenCV (x right, y down, z forward): flip y and z.
+GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+# Mitsuba camera axes (x left, y up, z forward) <-> OpenCV: flip x and y.
+MI_TO_CV = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+def _as_matrix(m, what: str) -> np.ndarray:
+    a = np.asarray(m, dtype=np.float64)
+    if a.shape == (3, 4):
+        a = np.vstack([a, [0.0, 0.0, 0.0, 1.0]])
+    if a.shape != (4, 4):
+        raise ValueError(f"{what}: expected a 4x4 (or 3x4) matrix, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{what}: matrix has non-finite entries")
+    return a
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera: intrinsics in pixels, extrinsics as a world-to-camera matrix in OpenCV axes."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    world_to_camera: np.ndarray = field(repr=False)  # (4, 4) float64, OpenCV axes
+    name: str = ""
+
+    def __post_init__(self):
+        object.__setattr__(self, "world_to_camera", _as_matrix(self.world_to_camera, f"camera {self.name!r}"))
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+        for k in ("fx", "fy", "cx", "cy"):
+            v = float(getattr(self, k))
+            if not math.isfinite(v):
+                raise ValueError(f"camera {self.name!r}: {k} is not finite")
+            object.__setattr__(self, k, v)
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"camera {self.name!r}: image size must be positive, got {self.width}x{self.height}")
+        if self.fx <= 0 or self.fy <= 0:
+            raise ValueError(f"camera {self.name!r}: focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+
+    # ---------------------------------------------------------------- derived quantities
+    @property
+    def camera_to_world(self) -> np.ndarray:
+        return np.linalg.inv(self.world_to_camera)
+
+    @property
+    def center(self) -> np.ndarray:
+        """Camera centre in world space, (3,)."""
+        R, t = self.world_to_camera[:3, :3], self.world_to_camera[:3, 3]
+        return -R.T @ t
+
+    @property
+    def fov_x(self) -> float:
+        return 2.0 * math.atan(self.width / (2.0 * self.fx))
+
+    @property
+    def fov_y(self) -> float:
+        return 2.0 * math.atan(self.height / (2.0 * self.fy))
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Project world points (N, 3) -> (pixel coordinates (N, 2), camera-space depth z (N,))."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        pc = p @ self.world_to_camera[:3, :3].T + self.world_to_camera[:3, 3]
+        z = pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = np.stack([self.fx * pc[:, 0] / z + self.cx, self.fy * pc[:, 1] / z + self.cy], axis=1)
+        return uv, z
+
+    def scaled(self, width: int, height: int) -> "Camera":
+        """The same camera for an image resampled to ``width x height`` (intrinsics scaled per axis)."""
+        sx, sy = width / self.width, height / self.height
+        return replace(self, width=width, height=height, fx=self.fx * sx, fy=self.fy * sy,
+                       cx=self.cx * sx, cy=self.cy * sy)
+
+    # ---------------------------------------------------------------- JSON
+    def to_dict(self) -> dict:
+        d = {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy, "cx": self.cx,
+             "cy": self.cy, "world_to_camera": self.world_to_camera.tolist()}
+        if self.name:
+            d["name"] = self.name
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "camera") -> "Camera":
+        missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy", "world_to_camera") if k not in d]
+        if missing:
+            raise ValueError(f"{source}: missing camera field(s) {', '.join(missing)}")
+        try:
+            return cls(width=d["width"], height=d["height"], fx=d["fx"], fy=d["fy"], cx=d["cx"], cy=d["cy"],
+                       world_to_camera=d["world_to_camera"], name=str(d.get("name", "")))
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{source}: {e}") from None
+
+    @classmethod
+    def from_json(cls, path: str | os.PathLike) -> "Camera":
+        path = os.fspath(path)
+        try:
+            with open(path, "r", encoding="utf-8") as f:
+                d = json.load(f)
+        except FileNotFoundError:
+            raise ValueError(f"{path}: camera file not found") from None
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
+        if not isinstance(d, dict):
+            raise ValueError(f"{path}: expected a JSON object with camera fields")
+        return cls.from_dict(d, source=path)
+
+    def to_json(self, path: str | os.PathLike) -> None:
+        from ..io_utils import atomic_write_text
+
+        atomic_write_text(path, json.dumps(self.to_dict(), indent=2))
+
+    # ---------------------------------------------------------------- other conventions
+    @classmethod
+    def from_camera_to_world_gl(cls, c2w_gl, width: int, height: int, fx: float, fy: float,
+                                cx: float, cy: float, name: str = "") -> "Camera":
+        """From an OpenGL/Blender/NeRF camera-to-world matrix (x right, y up, z back)."""
+        c2w_cv = _as_matrix(c2w_gl, f"camera {name!r}") @ GL_TO_CV
+        return cls(width, height, fx, fy, cx, cy, np.linalg.inv(c2w_cv), name)
+
+    @classmethod
+    def from_colmap(cls, camera, image, name: str | None = None) -> "Camera":
+        """From a pycolmap ``Camera`` (PINHOLE or SIMPLE_PINHOLE) and ``Image`` (its world-to-camera pose)."""
+        model = camera.model.name if hasattr(camera.model, "name") else str(camera.model)
+        p = np.asarray(camera.params, dtype=np.float64)
+        if model == "PINHOLE":
+            fx, fy, cx, cy = p
+        elif model == "SIMPLE_PINHOLE":
+            fx, cx, cy = p
+            fy = fx
+        else:
+            raise ValueError(f"unsupported COLMAP camera model {model} (only PINHOLE and SIMPLE_PINHOLE; "
+                             "undistort the images first)")
+        w2c = np.eye(4)
+        w2c[:3, :4] = np.asarray(image.cam_from_world().matrix(), dtype=np.float64)
+        return cls(camera.width, camera.height, fx, fy, cx, cy, w2c, image.name if name is None else name)
+
+    def to_mitsuba(self, near_clip: float = 0.01, far_clip: float = 1e4, rel_tol: float = 1e-3) -> dict:
+        """A ``perspective`` sensor dictionary for ``mi.load_dict`` with the same pixel geometry.
+
+        Mitsuba's perspective sensor has square pixels: ``fx`` and ``fy`` must agree to ``rel_tol``."""
+        import mitsuba as mi
+
+        if abs(self.fx - self.fy) > rel_tol * self.fx:
+            raise ValueError(f"camera {self.name!r}: Mitsuba's perspective sensor needs square pixels, "
+                             f"got fx={self.fx} fy={self.fy}")
+        to_world = self.camera_to_world @ MI_TO_CV
+        return {
+            "type": "perspective",
+            "fov_axis": "x",
+            "fov": math.degrees(self.fov_x),
+            "principal_point_offset_x": (self.width / 2.0 - self.cx) / self.width,
+            "principal_point_offset_y": (self.height / 2.0 - self.cy) / self.height,
+            "near_clip": near_clip,
+            "far_clip": far_clip,
+            "to_world": mi.ScalarTransform4f(to_world.tolist()),
+            "film": {"type": "hdrfilm", "width": self.width, "height": self.height,
+                     "rfilter": {"type": "box"}, "pixel_format": "rgba"},
+        }
+
+    @classmethod
+    def from_mitsuba(cls, sensor, name: str = "") -> "Camera":
+        """From a loaded Mitsuba ``perspective`` sensor (any variant)."""
+        import mitsuba as mi
+
+        params = mi.traverse(sensor)
+        size = sensor.film().size()
+        width, height = int(size[0]), int(size[1])
+        fov_x = math.radians(float(params["x_fov"][0] if hasattr(params["x_fov"], "__len__") else params["x_fov"]))
+        fx = width / (2.0 * math.tan(fov_x / 2.0))
+        off_x = float(params["principal_point_offset_x"][0]) if "principal_point_offset_x" in params else 0.0
+        off_y = float(params["principal_point_offset_y"][0]) if "principal_point_offset_y" in params else 0.0
+        to_world = np.array(mi.ScalarTransform4f(params["to_world"]).matrix, dtype=np.float64) \
+            if not hasattr(params["to_world"], "matrix") else np.array(params["to_world"].matrix, dtype=np.float64)
+        to_world = to_world.reshape(4, 4)
+        c2w_cv = to_world @ MI_TO_CV
+        return cls(width, height, fx, fx, width / 2.0 - off_x * width, height / 2.0 - off_y * height,
+                   np.linalg.inv(c2w_cv), name or sensor.id())

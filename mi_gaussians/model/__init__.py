@@ -1,0 +1,1 @@
+"""The Gaussian model: raw parameters, activations, spherical harmonics, PLY I/O and initialization."""

@@ -1,0 +1,110 @@
+"""``Gaussians``: the raw parameters of a 3DGS model as Dr.Jit tensors, nothing else.
+
+Raw values are stored exactly as in a 3DGS ``point_cloud.ply`` (see ``conventions.md``)::
+
+    means      (N, 3)        world-space centres
+    scales     (N, 3)        log standard deviations (sigma = exp(scale))
+    rotations  (N, 4)        unnormalized quaternions, (w, x, y, z)
+    opacities  (N,)          logits (alpha = sigmoid(opacity))
+    sh_dc      (N, 3)        degree-0 SH coefficient per RGB channel
+    sh_rest    (N, K - 1, 3) higher bands, coefficient-major (band index, then RGB); K = (degree + 1)^2
+
+The optimizer, densification and I/O live elsewhere; this class only holds, converts and activates.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..drjit_utils import owned_tensor, to_numpy
+
+PARAMETER_NAMES = ("means", "scales", "rotations", "opacities", "sh_dc", "sh_rest")
+
+
+def sh_degree_from_count(k: int) -> int:
+    """SH degree d from the number of coefficients per channel K = (d + 1)^2."""
+    d = int(round(math.sqrt(k))) - 1
+    if d < 0 or d > 3 or (d + 1) ** 2 != k:
+        raise ValueError(f"{k} SH coefficients per channel is not (d + 1)^2 for a degree d in 0..3")
+    return d
+
+
+@dataclass
+class Gaussians:
+    means: "mi.TensorXf"
+    scales: "mi.TensorXf"
+    rotations: "mi.TensorXf"
+    opacities: "mi.TensorXf"
+    sh_dc: "mi.TensorXf"
+    sh_rest: "mi.TensorXf"
+
+    def __post_init__(self):
+        n = self.means.shape[0] if len(self.means.shape) else 0
+        expect = {"means": (n, 3), "scales": (n, 3), "rotations": (n, 4), "opacities": (n,), "sh_dc": (n, 3)}
+        for name, shape in expect.items():
+            got = tuple(getattr(self, name).shape)
+            if got != shape:
+                raise ValueError(f"Gaussians.{name}: expected shape {shape}, got {got}")
+        rest = tuple(self.sh_rest.shape)
+        if len(rest) != 3 or rest[0] != n or rest[2] != 3:
+            raise ValueError(f"Gaussians.sh_rest: expected shape ({n}, K-1, 3), got {rest}")
+        sh_degree_from_count(rest[1] + 1)
+
+    # ---------------------------------------------------------------- construction / conversion
+    @classmethod
+    def from_numpy(cls, means, scales, rotations, opacities, sh_dc, sh_rest=None) -> "Gaussians":
+        means = np.asarray(means, dtype=np.float32).reshape(-1, 3)
+        n = means.shape[0]
+        if sh_rest is None:
+            sh_rest = np.zeros((n, 0, 3), np.float32)
+        return cls(
+            means=owned_tensor(means),
+            scales=owned_tensor(np.asarray(scales, np.float32).reshape(n, 3)),
+            rotations=owned_tensor(np.asarray(rotations, np.float32).reshape(n, 4)),
+            opacities=owned_tensor(np.asarray(opacities, np.float32).reshape(n)),
+            sh_dc=owned_tensor(np.asarray(sh_dc, np.float32).reshape(n, 3)),
+            sh_rest=owned_tensor(np.asarray(sh_rest, np.float32).reshape(n, -1, 3)),
+        )
+
+    def numpy(self) -> dict[str, np.ndarray]:
+        """Float32 NumPy copies of the raw parameters, keyed by :data:`PARAMETER_NAMES`."""
+        return {name: to_numpy(getattr(self, name)).reshape(tuple(getattr(self, name).shape))
+                for name in PARAMETER_NAMES}
+
+    def parameters(self) -> dict[str, "mi.TensorXf"]:
+        return {name: getattr(self, name) for name in PARAMETER_NAMES}
+
+    @property
+    def n(self) -> int:
+        return int(self.means.shape[0])
+
+    def __len__(self) -> int:
+        return self.n
+
+    @property
+    def sh_degree(self) -> int:
+        return sh_degree_from_count(int(self.sh_rest.shape[1]) + 1)
+
+    # ---------------------------------------------------------------- I/O and initialization
+    @classmethod
+    def load_ply(cls, path: str | os.PathLike) -> "Gaussians":
+        from .ply import read_ply
+
+        return cls.from_numpy(**read_ply(path))
+
+    def save_ply(self, path: str | os.PathLike) -> None:
+        from .ply import write_ply
+
+        write_ply(path, **self.numpy())
+
+    @classmethod
+    def from_points(cls, xyz, rgb, sh_degree: int = 3, initial_opacity: float = 0.1) -> "Gaussians":
+        from .init import init_from_points
+
+        return cls.from_numpy(**init_from_points(xyz, rgb, sh_degree=sh_degree, initial_opacity=initial_opacity))
