@@ -1,0 +1,1 @@
+"""The differentiable tile-sorted rasterizer: projection -> binning -> blending (one CustomOp)."""

@@ -1,0 +1,176 @@
+"""EWA projection of 3D Gaussians (plain Dr.Jit arithmetic, differentiable by Dr.Jit's AD).
+
+Per Gaussian: activations, 3D covariance R S S^T R^T, camera-space mean, the Jacobian with the reference's guard
+band, the dilated 2D covariance and its conic, an opacity-aware screen footprint, the tile rectangle, the
+view-dependent colour and the depth. Everything is computed for all N Gaussians; culled ones get an empty tile
+rectangle (and radius 0), so the blending never sees them and their gradients are zero.
+
+Guard band: the reference clamps ``t_x / t_z`` to ``1.3 * tan(fov_x / 2)``, which assumes a centred principal point.
+We clamp the projected mean to the pixel interval ``[-0.15 W, 1.15 W]`` (and likewise in y); for ``cx = W / 2`` this is
+the same interval, and it stays 30 % beyond the image edge on both sides for an off-centre principal point.
+
+Footprint: a Gaussian of opacity ``o`` reaches alpha >= 1/255 exactly where ``d^T conic d <= 2 ln(255 o)``; the
+axis-aligned box of that ellipse is ``|dx| <= sqrt(2 ln(255 o) * Sigma_xx)`` and ``|dy| <= sqrt(2 ln(255 o) * Sigma_yy)``.
+Covering that box (with a tiny safety margin) makes the image independent of the tile grid, unlike the reference's
+3-sigma circle, and is tighter for faint and for elongated Gaussians. ``radii`` keeps the reference definition
+``ceil(3 sqrt(lambda_max))`` because densification thresholds (20 px) are tuned to it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..config import RasterConfig
+from ..data.camera import Camera
+from ..model.gaussians import Gaussians
+from ..model.sh import eval_sh_colors, gather_sh_coeffs
+from .mathops import fclamp, fmax, fmin
+
+# Relative and absolute (pixels) slack added to the footprint box against float rounding; it only adds work.
+_FOOTPRINT_REL_MARGIN = 1e-3
+_FOOTPRINT_ABS_MARGIN = 1e-2
+
+
+@dataclass(frozen=True)
+class ViewParams:
+    """Per-view constants as *opaque* Dr.Jit scalars, so one compiled kernel serves every camera.
+
+    Python floats would be baked into kernels as literals and every new view would recompile."""
+
+    R: "mi.Matrix3f"          # world -> camera rotation
+    t: "mi.Vector3f"          # world -> camera translation
+    center: "mi.Point3f"      # camera centre in world space
+    fx: "mi.Float"
+    fy: "mi.Float"
+    cx: "mi.Float"
+    cy: "mi.Float"
+    width_f: "mi.Float"
+    height_f: "mi.Float"
+    width: int                # image size (host-side: sets launch sizes)
+    height: int
+
+    @classmethod
+    def from_camera(cls, cam: Camera) -> "ViewParams":
+        def op(v):
+            return dr.opaque(mi.Float, float(v))
+
+        w2c = np.asarray(cam.world_to_camera, dtype=np.float64)
+        R = mi.Matrix3f([[op(w2c[i, j]) for j in range(3)] for i in range(3)])
+        t = mi.Vector3f(op(w2c[0, 3]), op(w2c[1, 3]), op(w2c[2, 3]))
+        c = cam.center
+        return cls(R=R, t=t, center=mi.Point3f(op(c[0]), op(c[1]), op(c[2])), fx=op(cam.fx), fy=op(cam.fy),
+                   cx=op(cam.cx), cy=op(cam.cy), width_f=op(cam.width), height_f=op(cam.height),
+                   width=cam.width, height=cam.height)
+
+
+@dataclass
+class Projected:
+    """Per-Gaussian screen-space quantities (size N). AD-tracked: mean2d, conic, opacity, color, depth."""
+
+    mean2d: "mi.Point2f"      # pixel coordinates of the projected mean
+    conic: "mi.Vector3f"      # inverse of the dilated 2D covariance: (a, b, c) of [[a, b], [b, c]]
+    opacity: "mi.Float"       # sigmoid(opacity logit)
+    color: "mi.Color3f"       # max(SH(dir) + 0.5, 0)
+    depth: "mi.Float"         # camera-space z
+    rect: tuple               # (tx0, ty0, tx1, ty1) tile rectangle, inclusive, mi.Int32 (detached)
+    tile_count: "mi.UInt32"   # number of tiles overlapped (0 when culled)
+    radii: "mi.Int32"         # reference radius ceil(3 sqrt(lambda_max)) in pixels, 0 when culled
+
+
+def quaternion_to_matrix(q_wxyz: "mi.Vector4f") -> "mi.Matrix3f":
+    """Rotation matrix of a (w, x, y, z) quaternion (normalized here)."""
+    q = q_wxyz * dr.rsqrt(fmax(dr.squared_norm(q_wxyz), 1e-24))   # a zero quaternion gives the identity
+    w, x, y, z = q.x, q.y, q.z, q.w
+    return mi.Matrix3f(
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    )
+
+
+def project(g: Gaussians, view: ViewParams, sh_degree: int, cfg: RasterConfig) -> Projected:
+    n = g.n
+    means = dr.unravel(mi.Point3f, g.means.array)
+    log_scales = dr.unravel(mi.Vector3f, g.scales.array)
+    quats = dr.unravel(mi.Vector4f, g.rotations.array)
+    opacity = dr.rcp(1.0 + dr.exp(-g.opacities.array))
+
+    # Camera space
+    tcam = view.R @ means + view.t
+    tz = tcam.z
+    in_front = dr.detach(tz) > cfg.near_plane
+    # culled Gaussians use z = 1 in the arithmetic below so nothing overflows into NaN gradients
+    inv_z = dr.rcp(dr.select(in_front, tz, 1.0))
+
+    # Jacobian with the guard band (clamped normalized coordinates; see the module docstring)
+    lim_x0 = (-0.15 * view.width_f - view.cx) / view.fx
+    lim_x1 = (1.15 * view.width_f - view.cx) / view.fx
+    lim_y0 = (-0.15 * view.height_f - view.cy) / view.fy
+    lim_y1 = (1.15 * view.height_f - view.cy) / view.fy
+    u = fclamp(tcam.x * inv_z, lim_x0, lim_x1)
+    v = fclamp(tcam.y * inv_z, lim_y0, lim_y1)
+    j00 = view.fx * inv_z
+    j02 = -view.fx * u * inv_z
+    j11 = view.fy * inv_z
+    j12 = -view.fy * v * inv_z
+
+    # T = J W (2 x 3), M = R S (3 x 3), Sigma2D = (T M)(T M)^T
+    Rq = quaternion_to_matrix(quats)
+    s = dr.exp(log_scales)
+    W = view.R
+    T0 = j00 * W[0] + j02 * W[2]      # rows of J W (W[i] is the i-th row of the view rotation)
+    T1 = j11 * W[1] + j12 * W[2]
+    # columns of M = R S: M[:, k] = R[:, k] * s_k; (T M)_{rk} = dot(T_r, R[:, k]) * s_k
+    col = [mi.Vector3f(Rq[0][k], Rq[1][k], Rq[2][k]) for k in range(3)]
+    a0 = [dr.dot(T0, col[k]) * s[k] for k in range(3)]
+    a1 = [dr.dot(T1, col[k]) * s[k] for k in range(3)]
+    cov_a = a0[0] * a0[0] + a0[1] * a0[1] + a0[2] * a0[2] + cfg.dilation
+    cov_b = a0[0] * a1[0] + a0[1] * a1[1] + a0[2] * a1[2]
+    cov_c = a1[0] * a1[0] + a1[1] * a1[1] + a1[2] * a1[2] + cfg.dilation
+    det = cov_a * cov_c - cov_b * cov_b
+    inv_det = dr.rcp(det)
+    conic = mi.Vector3f(cov_c * inv_det, -cov_b * inv_det, cov_a * inv_det)
+
+    mean2d = mi.Point2f(view.fx * tcam.x * inv_z + view.cx, view.fy * tcam.y * inv_z + view.cy)
+
+    # Colour from SH (view direction from the camera centre to the mean)
+    d = means - view.center
+    dirs = d * dr.rsqrt(fmax(dr.squared_norm(d), 1e-30))
+    dc, rest = gather_sh_coeffs(g.sh_dc, g.sh_rest, sh_degree)
+    color = mi.Color3f(eval_sh_colors(dc, rest, dirs, sh_degree, normalize=False))
+
+    # ---- footprint, culling, tile rectangle (no gradients needed)
+    with dr.suspend_grad():
+        o = dr.detach(opacity)
+        a, c, dt = dr.detach(cov_a), dr.detach(cov_c), dr.detach(det)
+        m = dr.detach(mean2d)
+        k2 = 2.0 * dr.log(255.0 * o)
+        valid = in_front & (dt > 0) & (k2 >= 0)
+        ex = dr.sqrt(fmax(k2 * a, 0.0)) * (1 + _FOOTPRINT_REL_MARGIN) + _FOOTPRINT_ABS_MARGIN
+        ey = dr.sqrt(fmax(k2 * c, 0.0)) * (1 + _FOOTPRINT_REL_MARGIN) + _FOOTPRINT_ABS_MARGIN
+        valid &= dr.isfinite(ex) & dr.isfinite(ey) & dr.isfinite(m.x) & dr.isfinite(m.y)
+        # pixels i whose centre i + 0.5 lies within [m - e, m + e]
+        w_f, h_f = view.width_f, view.height_f
+        i0 = dr.ceil(m.x - ex - 0.5)
+        i1 = dr.floor(m.x + ex - 0.5)
+        j0 = dr.ceil(m.y - ey - 0.5)
+        j1 = dr.floor(m.y + ey - 0.5)
+        valid &= (i1 >= 0) & (i0 <= w_f - 1) & (j1 >= 0) & (j0 <= h_f - 1) & (i0 <= i1) & (j0 <= j1)
+        ts = float(cfg.tile_size)
+        tx0 = mi.Int32(dr.floor(fmax(i0, 0.0) / ts))
+        tx1 = mi.Int32(dr.floor(fmin(i1, w_f - 1) / ts))
+        ty0 = mi.Int32(dr.floor(fmax(j0, 0.0) / ts))
+        ty1 = mi.Int32(dr.floor(fmin(j1, h_f - 1) / ts))
+        count = mi.UInt32((tx1 - tx0 + 1) * (ty1 - ty0 + 1))
+        count = dr.select(valid, count, 0)
+        mid = 0.5 * (a + c)
+        lam = mid + dr.sqrt(fmax(mid * mid - dt, 0.1))
+        radii = dr.select(valid, mi.Int32(dr.ceil(3.0 * dr.sqrt(lam))), 0)
+
+    return Projected(mean2d=mean2d, conic=conic, opacity=opacity, color=color, depth=tz,
+                     rect=(tx0, ty0, tx1, ty1), tile_count=count, radii=radii)

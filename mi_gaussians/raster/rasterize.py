@@ -1,0 +1,96 @@
+"""``render(gaussians, camera)``: projection -> binning -> blending, differentiable w.r.t. every raw parameter.
+
+    out = render(g, cam, background=(r, g, b), sh_degree=None)
+    out.rgb    TensorXf (H, W, 3)   C + T * background
+    out.alpha  TensorXf (H, W)      1 - T
+    out.depth  TensorXf (H, W)      expected depth sum(z_i w_i) / sum(w_i) (0 where nothing was hit)
+    out.radii  Int32 (N,)           reference screen radius (ceil(3 sqrt(lambda_max)) px), 0 when culled
+    out.means2d_grad                dL / d(projected mean) in pixels, (N,) Vector2f, available after dr.backward
+
+Gradients reach the raw parameters of ``g`` through Dr.Jit's AD (``dr.enable_grad(g.means)``, ...,
+``dr.backward(loss)``); the blend's own backward pass is the hand-written one of ``blend.py``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import drjit as dr
+import mitsuba as mi
+
+from ..config import RasterConfig
+from ..data.camera import Camera
+from ..model.gaussians import Gaussians
+from .binning import Bins, bin_gaussians
+from .blend import BlendStats, blend, make_frame
+from .mathops import fmax
+from .projection import Projected, ViewParams, project
+
+
+@dataclass
+class RenderOutput:
+    rgb: "mi.TensorXf"
+    alpha: "mi.TensorXf"
+    depth: "mi.TensorXf"
+    radii: "mi.Int32"
+    n_instances: int
+    projected: Projected = field(repr=False)
+    bins: Bins = field(repr=False)
+    _stats: BlendStats = field(repr=False, default=None)
+
+    @property
+    def means2d_grad(self) -> "mi.Vector2f":
+        """Gradient of the loss w.r.t. the projected 2D means (pixels), filled by ``dr.backward``."""
+        if self._stats.means2d_grad is None:
+            return dr.zeros(mi.Vector2f, dr.width(self.radii))
+        return self._stats.means2d_grad
+
+
+def _check_background(background) -> tuple[float, float, float]:
+    bg = tuple(float(b) for b in background)
+    if len(bg) != 3:
+        raise ValueError(f"background must have 3 components (r, g, b), got {background!r}")
+    return bg
+
+
+def render(g: Gaussians, camera: Camera, background=(0.0, 0.0, 0.0), sh_degree: int | None = None,
+           cfg: RasterConfig = RasterConfig()) -> RenderOutput:
+    if cfg.tile_size != 16:
+        raise ValueError("only 16 x 16 tiles are implemented")
+    deg = g.sh_degree if sh_degree is None else int(sh_degree)
+    if deg < 0 or deg > g.sh_degree:
+        raise ValueError(f"sh_degree {sh_degree} is outside 0..{g.sh_degree} (the model's SH degree)")
+    bg = _check_background(background)
+    W, H = camera.width, camera.height
+    tiles_x, tiles_y = (W + 15) // 16, (H + 15) // 16
+
+    view = ViewParams.from_camera(camera)
+    if g.n > 0:
+        proj = project(g, view, deg, cfg)
+        bins = bin_gaussians(proj.depth, proj.rect, proj.tile_count, tiles_x, tiles_y)
+        radii = proj.radii
+    else:
+        proj = None
+        bins = Bins(gaussian=dr.zeros(mi.UInt32, 0), tile_start=dr.zeros(mi.UInt32, tiles_x * tiles_y + 1),
+                    n_instances=0, tiles_x=tiles_x, tiles_y=tiles_y)
+        radii = dr.zeros(mi.Int32, 0)
+
+    frame = make_frame(W, H, tiles_x)
+    stats = BlendStats()
+    npix = W * H
+    if bins.n_instances == 0:
+        C4 = dr.zeros(mi.Float, npix * 4)
+        T = dr.full(mi.Float, 1.0, npix)
+    else:
+        C4, T = blend(proj.mean2d, proj.conic, proj.opacity, proj.color, proj.depth, bins, frame, cfg, stats)
+
+    idx = dr.arange(mi.UInt32, npix)
+    r = dr.gather(mi.Float, C4, idx * 4 + 0) + T * bg[0]
+    gch = dr.gather(mi.Float, C4, idx * 4 + 1) + T * bg[1]
+    b = dr.gather(mi.Float, C4, idx * 4 + 2) + T * bg[2]
+    dsum = dr.gather(mi.Float, C4, idx * 4 + 3)
+    alpha = 1.0 - T
+    depth = dr.select(alpha > 1e-12, dsum / fmax(alpha, 1e-12), 0.0)
+    rgb = mi.TensorXf(dr.ravel(mi.Color3f(r, gch, b)), (H, W, 3))
+    return RenderOutput(rgb=rgb, alpha=mi.TensorXf(alpha, (H, W)), depth=mi.TensorXf(depth, (H, W)),
+                        radii=radii, n_instances=bins.n_instances, projected=proj, bins=bins, _stats=stats)
