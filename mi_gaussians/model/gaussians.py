@@ -63,13 +63,16 @@ class Gaussians:
         n = means.shape[0]
         if sh_rest is None:
             sh_rest = np.zeros((n, 0, 3), np.float32)
+        sh_rest = np.asarray(sh_rest, np.float32)
+        if sh_rest.ndim != 3:  # flat input; (N, K - 1, 3) input is kept as is (reshape(n, -1, 3) fails for N = 0)
+            sh_rest = sh_rest.reshape(n, -1, 3)
         return cls(
             means=owned_tensor(means),
             scales=owned_tensor(np.asarray(scales, np.float32).reshape(n, 3)),
             rotations=owned_tensor(np.asarray(rotations, np.float32).reshape(n, 4)),
             opacities=owned_tensor(np.asarray(opacities, np.float32).reshape(n)),
             sh_dc=owned_tensor(np.asarray(sh_dc, np.float32).reshape(n, 3)),
-            sh_rest=owned_tensor(np.asarray(sh_rest, np.float32).reshape(n, -1, 3)),
+            sh_rest=owned_tensor(sh_rest),
         )
 
     def numpy(self) -> dict[str, np.ndarray]:

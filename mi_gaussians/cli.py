@@ -1,0 +1,239 @@
+"""``mi-gs``: the command-line interface. Arguments -> config dataclasses -> library calls.
+
+Every subcommand selects the Mitsuba variant first (``--variant``; default ``cuda_ad_rgb`` when a CUDA device is
+present, else ``llvm_ad_rgb``). Errors in the user's input print one line, ``mi-gs: error: <file>: <problem>``, and
+exit with status 2; nothing is half-written (all outputs are written atomically).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+EXIT_INPUT_ERROR = 2
+
+
+class InputError(Exception):
+    """A problem with the user's input, reported as one line."""
+
+
+def _default_variant() -> str:
+    import drjit as dr
+
+    return "cuda_ad_rgb" if dr.has_backend(dr.JitBackend.CUDA) else "llvm_ad_rgb"
+
+
+def _set_variant(name: str | None) -> None:
+    import mitsuba as mi
+
+    variant = name or _default_variant()
+    if variant not in mi.variants():
+        raise InputError(f"unknown Mitsuba variant {variant!r} (available: {', '.join(mi.variants())})")
+    mi.set_variant(variant)
+
+
+def _background(values) -> tuple[float, float, float]:
+    if values is None:
+        return (0.0, 0.0, 0.0)
+    if len(values) == 1:
+        return (values[0],) * 3
+    if len(values) != 3:
+        raise InputError("--background takes one value or three (r g b)")
+    return tuple(values)
+
+
+# ------------------------------------------------------------------------------------------------------ info
+def cmd_info(args) -> int:
+    path = Path(args.path)
+    if not path.exists():
+        raise InputError(f"{path}: not found")
+    if path.suffix.lower() == ".ply":
+        import numpy as np
+
+        from .model.ply import read_ply
+
+        p = read_ply(path)
+        n = p["means"].shape[0]
+        deg = {0: 0, 3: 1, 8: 2, 15: 3}[p["sh_rest"].shape[1]]
+        info = {"file": str(path), "gaussians": n, "sh_degree": deg}
+        if n:
+            opac = 1.0 / (1.0 + np.exp(-p["opacities"].astype(np.float64)))
+            sig = np.exp(p["scales"].astype(np.float64)).max(axis=1)
+            info.update(bbox_min=p["means"].min(0).round(4).tolist(), bbox_max=p["means"].max(0).round(4).tolist(),
+                        opacity_mean=round(float(opac.mean()), 4),
+                        sigma_max_median=float(np.median(sig)))
+    elif path.suffix.lower() == ".xml":
+        import mitsuba as mi
+
+        scene = mi.load_file(str(path))
+        info = {"file": str(path), "integrator": scene.integrator().class_name() if scene.integrator() else None,
+                "sensors": [s.id() or s.class_name() for s in scene.sensors()],
+                "shapes": len(scene.shapes()), "bbox": [list(scene.bbox().min), list(scene.bbox().max)]}
+    else:
+        from .data.dataset import load_dataset
+
+        ds = load_dataset(path, resolution=args.resolution)
+        cam = ds.train[0].camera
+        info = {"dataset": str(path), "layout": ds.layout, "train_views": len(ds.train), "test_views": len(ds.test),
+                "image_size": [cam.width, cam.height], "fx": round(cam.fx, 4), "fy": round(cam.fy, 4),
+                "cx": round(cam.cx, 4), "cy": round(cam.cy, 4), "color_space": ds.color_space,
+                "points": 0 if ds.points_xyz is None else int(ds.points_xyz.shape[0]),
+                "extent": round(ds.extent, 6)}
+    print(json.dumps(info, indent=2))
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------------- render
+def _render_gaussians_views(args, views, color_space: str, out_paths) -> None:
+    import numpy as np
+    from tqdm import tqdm
+
+    from .imwrite import write_image
+    from .model.gaussians import Gaussians
+    from .raster.rasterize import render
+
+    g = Gaussians.load_ply(args.input)
+    bg = _background(args.background)
+    for (name, cam), outs in tqdm(list(zip(views, out_paths)), desc="render", unit="view", disable=len(views) < 2):
+        out = render(g, cam, background=bg, sh_degree=args.sh_degree)
+        rgb = np.array(out.rgb, dtype=np.float32)
+        if args.alpha:
+            rgb = np.concatenate([rgb, np.array(out.alpha, dtype=np.float32)[..., None]], axis=-1)
+        for p in outs:
+            write_image(p, rgb, color_space)
+
+
+def _outputs_for(path: Path) -> list[Path]:
+    ext = path.suffix.lower()
+    if ext not in (".exr", ".png"):
+        raise InputError(f"{path}: unsupported output format {ext or '(none)'} (use .exr or .png)")
+    return [path]
+
+
+def cmd_render(args) -> int:
+    src = Path(args.input)
+    if not src.exists():
+        raise InputError(f"{src}: not found")
+    out = Path(args.output)
+    if src.suffix.lower() == ".xml":
+        import mitsuba as mi
+        import numpy as np
+
+        from .imwrite import write_image
+
+        scene = mi.load_file(str(src))
+        if not scene.sensors():
+            raise InputError(f"{src}: the scene has no sensor")
+        if args.sensor >= len(scene.sensors()):
+            raise InputError(f"{src}: sensor index {args.sensor} out of range ({len(scene.sensors())} sensors)")
+        img = np.array(mi.render(scene, sensor=args.sensor, spp=args.spp or 0), dtype=np.float32)
+        for p in _outputs_for(out):
+            write_image(p, img[..., :4] if img.shape[-1] >= 4 else img[..., :3], "linear")
+            print(p)
+        return 0
+    if src.suffix.lower() != ".ply":
+        raise InputError(f"{src}: expected a 3DGS .ply model or a Mitsuba scene .xml")
+    if (args.camera is None) == (args.dataset is None):
+        raise InputError("give exactly one of --camera CAM.json or --dataset DIR")
+    if args.camera is not None:
+        from .data.camera import Camera
+
+        cam = Camera.from_json(args.camera)
+        _render_gaussians_views(args, [(cam.name or "view", cam)], args.color_space, [_outputs_for(out)])
+        print(out)
+        return 0
+    from .data.dataset import load_dataset
+
+    ds = load_dataset(args.dataset, resolution=args.resolution, background=_background(args.background))
+    views = {"train": ds.train, "test": ds.test, "all": ds.views}[args.split]
+    if not views:
+        raise InputError(f"{args.dataset}: the {args.split} split is empty")
+    if out.suffix:
+        raise InputError(f"{out}: with --dataset, -o names an output folder")
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [[out / f"{Path(v.name).stem}.exr", out / f"{Path(v.name).stem}.png"] for v in views]
+    _render_gaussians_views(args, [(v.name, v.camera) for v in views], ds.color_space, paths)
+    print(f"{len(views)} views -> {out}")
+    return 0
+
+
+# --------------------------------------------------------------------------------------------------- convert
+def cmd_convert(args) -> int:
+    from .data.convert import convert
+
+    res = convert(args.images, args.output, camera_model=args.camera_model, resize=args.resize,
+                  overwrite=args.overwrite, num_threads=args.threads, max_image_size=args.max_image_size,
+                  progress=lambda line: print(line, flush=True))
+    print(json.dumps({"scene": str(res.out_dir), "images": res.num_images, "registered": res.num_registered,
+                      "points": res.num_points, "mean_reprojection_error_px": round(res.mean_reprojection_error, 4)},
+                     indent=2))
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------------ main
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="mi-gs", description="3D Gaussian Splatting as a Mitsuba 3 plugin.")
+    p.add_argument("--variant", default=None, help="Mitsuba variant (default: cuda_ad_rgb if available, else llvm_ad_rgb)")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("info", help="summarize a 3DGS .ply, a dataset folder or a Mitsuba scene .xml")
+    s.add_argument("path")
+    s.add_argument("-r", "--resolution", type=int, default=1, help="dataset resolution divisor")
+    s.set_defaults(func=cmd_info)
+
+    s = sub.add_parser("render", help="render a 3DGS .ply (from a camera JSON or a dataset's views) or a scene .xml")
+    s.add_argument("input", help="model.ply or scene.xml")
+    s.add_argument("--camera", help="camera JSON (see README)")
+    s.add_argument("--dataset", help="dataset folder whose views to render")
+    s.add_argument("--split", choices=("train", "test", "all"), default="test")
+    s.add_argument("-o", "--output", required=True, help="output .exr/.png file, or folder with --dataset")
+    s.add_argument("-r", "--resolution", type=int, default=1)
+    s.add_argument("--background", type=float, nargs="+", default=None, help="background colour (1 or 3 values)")
+    s.add_argument("--sh-degree", type=int, default=None, help="active SH degree (default: the model's)")
+    s.add_argument("--color-space", choices=("srgb", "linear"), default="srgb",
+                   help="what the model's colours are (3DGS models trained on photos: srgb)")
+    s.add_argument("--alpha", action="store_true", help="write an alpha channel")
+    s.add_argument("--spp", type=int, default=None, help="samples per pixel (scene .xml only)")
+    s.add_argument("--sensor", type=int, default=0, help="sensor index (scene .xml only)")
+    s.set_defaults(func=cmd_render)
+
+    s = sub.add_parser("convert", help="structure-from-motion with pycolmap: images folder -> COLMAP scene")
+    s.add_argument("images", help="folder of input images")
+    s.add_argument("-o", "--output", required=True, help="scene folder to create (images/ + sparse/0)")
+    s.add_argument("--camera-model", default="OPENCV")
+    s.add_argument("--resize", action="store_true", help="also write images_2/4/8")
+    s.add_argument("--overwrite", action="store_true")
+    s.add_argument("--threads", type=int, default=-1)
+    s.add_argument("--max-image-size", type=int, default=3200)
+    s.set_defaults(func=cmd_convert)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        _set_variant(args.variant)
+        import mi_gaussians  # noqa: F401  (registers the plugins for the variant)
+
+        return args.func(args)
+    except (InputError, ValueError, FileNotFoundError, NotADirectoryError, PermissionError) as e:
+        print(f"mi-gs: error: {_one_line(e)}", file=sys.stderr)
+        return EXIT_INPUT_ERROR
+    except RuntimeError as e:   # Mitsuba reports scene-file problems as RuntimeError
+        print(f"mi-gs: error: {_one_line(e)}", file=sys.stderr)
+        return EXIT_INPUT_ERROR
+    except KeyboardInterrupt:
+        print("mi-gs: interrupted", file=sys.stderr)
+        return 130
+
+
+def _one_line(e: BaseException) -> str:
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+    return " ".join(lines) if len(lines) <= 3 else " ".join(lines[:3]) + " ..."
+
+
+if __name__ == "__main__":
+    sys.exit(main())

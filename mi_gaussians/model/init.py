@@ -1,0 +1,104 @@
+"""Initialization of Gaussians from a point cloud (COLMAP points3D, a dataset's random points), reference rules:
+
+* colour -> SH DC ``(rgb - 0.5) / SH_C0``, higher SH bands zero;
+* scale = ``log(sqrt(d2))`` on all three axes, where ``d2`` is the mean squared distance to the 3 nearest other points,
+  floored at 1e-7 (reference: ``clamp_min(distCUDA2(points), 1e-7)``);
+* identity rotation ``(1, 0, 0, 0)``; opacity ``logit(0.1)``.
+
+Differences from the reference, documented: the reference's simple-knn ``distCUDA2`` is an approximate (box-based)
+search in float32; we use an exact k-d tree search in float64. Duplicated points count as neighbours at distance 0,
+exactly as in the reference, so a point with 3 or more duplicates gets the floor ``log(sqrt(1e-7))``. With fewer than
+4 points the mean is over the ``N - 1`` available neighbours (the reference would average in FLT_MAX for missing
+neighbours); a single point has no neighbour and gets the floor.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..conventions import logit, rgb_to_sh_dc
+
+#: Floor on the mean squared neighbour distance (reference value).
+MIN_DIST2 = 1e-7
+#: Number of nearest neighbours averaged for the initial scale.
+KNN = 3
+
+
+def mean_knn_dist2(xyz, k: int = KNN) -> np.ndarray:
+    """Mean squared distance of each point to its ``k`` nearest other points, float64 (N,), NOT floored.
+
+    ``xyz`` (N, 3). With ``N - 1 < k`` the mean is over the ``N - 1`` others; ``N == 1`` gives 0."""
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    n = xyz.shape[0]
+    kk = min(k, n - 1)
+    if kk <= 0:
+        return np.zeros(n, np.float64)
+    tree = cKDTree(xyz)
+    # k + 1 because the query point itself is returned (distance 0). With duplicates the first zero distance may be a
+    # duplicate instead of the point itself: both are 0, so dropping the first column is the same either way.
+    dist, _ = tree.query(xyz, k=kk + 1)
+    d = dist[:, 1:]
+    return np.mean(d * d, axis=1)
+
+
+def init_scales(xyz, k: int = KNN, min_dist2: float = MIN_DIST2) -> np.ndarray:
+    """Isotropic log-scales (N, 3) float32: ``log(sqrt(max(mean_knn_dist2, min_dist2)))`` on each axis."""
+    d2 = np.maximum(mean_knn_dist2(xyz, k), min_dist2)
+    s = 0.5 * np.log(d2)
+    return np.repeat(s[:, None], 3, axis=1).astype(np.float32)
+
+
+def init_from_points(xyz, rgb, sh_degree: int = 3, initial_opacity: float = 0.1) -> dict[str, np.ndarray]:
+    """Raw Gaussian parameters initialized from points, keyed like ``Gaussians.from_numpy`` (all float32).
+
+    ``xyz`` (N, 3) positions, ``rgb`` (N, 3) colours in [0, 1] (floats) or 0..255 (uint8 arrays, divided by 255),
+    ``sh_degree`` 0..3 (sets the shape of ``sh_rest``: (N, (d + 1)^2 - 1, 3) zeros), ``initial_opacity`` in (0, 1).
+    Returns means (N, 3), scales (N, 3), rotations (N, 4) = (1, 0, 0, 0), opacities (N,) = logit(initial_opacity),
+    sh_dc (N, 3), sh_rest. Raises ValueError for empty input, mismatched shapes or non-finite values."""
+    if not isinstance(sh_degree, (int, np.integer)) or not 0 <= int(sh_degree) <= 3:
+        raise ValueError(f"sh_degree must be an integer in 0..3, got {sh_degree!r}")
+    if not 0.0 < float(initial_opacity) < 1.0:
+        raise ValueError(f"initial_opacity must be strictly between 0 and 1, got {initial_opacity!r}")
+    xyz = np.asarray(xyz)
+    rgb = np.asarray(rgb)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {xyz.shape}")
+    n = xyz.shape[0]
+    if n == 0:
+        raise ValueError("cannot initialize Gaussians from an empty point cloud")
+    if rgb.shape != (n, 3):
+        raise ValueError(f"colours must have shape ({n}, 3) to match the points, got {rgb.shape}")
+    if rgb.dtype == np.uint8:
+        rgb = rgb.astype(np.float64) / 255.0
+    xyz = xyz.astype(np.float64)
+    rgb = rgb.astype(np.float64)
+    for name, a in (("points", xyz), ("colours", rgb)):
+        bad = int((~np.isfinite(a)).sum())
+        if bad:
+            raise ValueError(f"{bad} non-finite value(s) in the {name}")
+
+    k_rest = (int(sh_degree) + 1) ** 2 - 1
+    return {
+        "means": xyz.astype(np.float32),
+        "scales": init_scales(xyz),
+        "rotations": np.tile(np.array([1.0, 0.0, 0.0, 0.0], np.float32), (n, 1)),
+        "opacities": np.full(n, logit(np.float64(initial_opacity)), dtype=np.float32),
+        "sh_dc": rgb_to_sh_dc(rgb).astype(np.float32),
+        "sh_rest": np.zeros((n, k_rest, 3), np.float32),
+    }
+
+
+def random_cube_points(n: int = 100_000, half_extent: float = 1.3, seed: int | None = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Uniform random points in ``[-half_extent, half_extent]^3`` with uniform random colours in [0, 1].
+
+    The initialization for synthetic scenes without points (reference: 100k points in [-1.3, 1.3]^3). Note: the
+    reference draws random SH DC values in [0, 1/255], i.e. colours of almost exactly 0.5 grey; we draw the colours
+    themselves uniformly, as the published method describes ("random colours"). Returns xyz (n, 3) and rgb (n, 3),
+    float32."""
+    if n < 1:
+        raise ValueError(f"n must be positive, got {n}")
+    rng = np.random.default_rng(seed)
+    xyz = (rng.random((n, 3)) * 2.0 - 1.0) * half_extent
+    rgb = rng.random((n, 3))
+    return xyz.astype(np.float32), rgb.astype(np.float32)

@@ -1,0 +1,124 @@
+"""Initialization of Gaussians from points: kNN scales, colours, defaults, degenerate inputs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import mitsuba as mi
+
+from mi_gaussians.conventions import SH_C0
+from mi_gaussians.model.gaussians import Gaussians
+from mi_gaussians.model.init import MIN_DIST2, init_from_points, mean_knn_dist2, random_cube_points
+
+KEYS = ("means", "scales", "rotations", "opacities", "sh_dc", "sh_rest")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _variant():
+    mi.set_variant("llvm_ad_rgb")
+
+
+def brute_force_scales(xyz: np.ndarray, k: int = 3) -> np.ndarray:
+    """log(sqrt(max(mean of the k smallest squared distances to OTHER points, 1e-7))), float64 (N,)."""
+    xyz = xyz.astype(np.float64)
+    n = xyz.shape[0]
+    d2 = ((xyz[:, None, :] - xyz[None, :, :]) ** 2).sum(-1)
+    d2[np.arange(n), np.arange(n)] = np.inf  # exclude the point itself (not its duplicates)
+    kk = min(k, n - 1)
+    if kk == 0:
+        return np.full(n, 0.5 * np.log(1e-7))
+    near = np.sort(d2, axis=1)[:, :kk]
+    return 0.5 * np.log(np.maximum(near.mean(axis=1), 1e-7))
+
+
+def test_scales_match_brute_force_knn():
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(300, 3)) * [1.0, 2.0, 0.5]
+    out = init_from_points(xyz, rng.random((300, 3)))
+    expect = brute_force_scales(xyz)
+    assert out["scales"].shape == (300, 3) and out["scales"].dtype == np.float32
+    assert np.all(out["scales"] == out["scales"][:, :1])  # isotropic
+    np.testing.assert_allclose(out["scales"][:, 0], expect, rtol=1e-6, atol=1e-6)
+
+
+def test_duplicate_points():
+    rng = np.random.default_rng(1)
+    base = rng.normal(size=(20, 3))
+    xyz = np.concatenate([base, base[:5], base[:1], base[:1], base[:1]])  # point 0 appears 5 times
+    out = init_from_points(xyz, np.full((xyz.shape[0], 3), 0.5))
+    np.testing.assert_allclose(out["scales"][:, 0], brute_force_scales(xyz), rtol=1e-6, atol=1e-6)
+    floor = 0.5 * np.log(MIN_DIST2)
+    for i in (0, 20, 25, 26, 27):  # >= 3 exact duplicates: all 3 neighbours at distance 0 -> floor
+        np.testing.assert_allclose(out["scales"][i], floor, rtol=1e-6)
+    # a point with one duplicate: mean over (0, d2, d3)
+    assert np.all(out["scales"][1] > floor)
+    assert np.all(np.isfinite(out["scales"]))
+
+
+def test_all_points_identical():
+    out = init_from_points(np.ones((6, 3)), np.zeros((6, 3)))
+    np.testing.assert_allclose(out["scales"], 0.5 * np.log(MIN_DIST2), rtol=1e-6)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_few_points(n):
+    xyz = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, 4.0, 0.0]])[:n]
+    out = init_from_points(xyz, np.full((n, 3), 0.25), sh_degree=1)
+    assert all(out[k].shape[0] == n for k in KEYS)
+    np.testing.assert_allclose(out["scales"][:, 0], brute_force_scales(xyz), rtol=1e-6)
+    if n == 1:
+        np.testing.assert_allclose(out["scales"], 0.5 * np.log(MIN_DIST2), rtol=1e-6)
+    if n == 2:
+        np.testing.assert_allclose(out["scales"], np.log(3.0), rtol=1e-6)  # one neighbour at distance 3
+    if n == 3:
+        # point 0: neighbours at 3 and 4 -> mean d2 = 12.5; point 1: 3 and 5 -> 17; point 2: 4 and 5 -> 20.5
+        np.testing.assert_allclose(out["scales"][:, 0], 0.5 * np.log([12.5, 17.0, 20.5]), rtol=1e-6)
+    assert np.array_equal(mean_knn_dist2(xyz[:1]), [0.0])
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_other_parameters(degree):
+    rng = np.random.default_rng(degree)
+    xyz = rng.normal(size=(10, 3)).astype(np.float32)
+    rgb = rng.random((10, 3))
+    out = init_from_points(xyz, rgb, sh_degree=degree)
+    assert set(out) == set(KEYS)
+    assert all(v.dtype == np.float32 and v.flags.c_contiguous for v in out.values())
+    assert np.array_equal(out["means"], xyz)
+    assert np.array_equal(out["rotations"], np.tile([1.0, 0.0, 0.0, 0.0], (10, 1)))
+    np.testing.assert_allclose(out["opacities"], np.log(0.1 / 0.9), rtol=1e-7)
+    np.testing.assert_allclose(out["sh_dc"], (rgb - 0.5) / SH_C0, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(out["sh_dc"] * SH_C0 + 0.5, rgb, atol=1e-6)
+    assert out["sh_rest"].shape == (10, (degree + 1) ** 2 - 1, 3) and not out["sh_rest"].any()
+    g = Gaussians.from_points(xyz, rgb, sh_degree=degree)
+    assert g.sh_degree == degree and g.n == 10
+
+
+def test_uint8_colours_and_custom_opacity():
+    rgb = np.array([[0, 128, 255], [255, 255, 255]], np.uint8)
+    out = init_from_points(np.zeros((2, 3)) + [[0, 0, 0], [1, 0, 0]], rgb, initial_opacity=0.5)
+    np.testing.assert_allclose(out["sh_dc"], (rgb / 255.0 - 0.5) / SH_C0, rtol=1e-6, atol=1e-7)
+    assert np.all(out["opacities"] == 0.0)
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    ({"xyz": np.zeros((0, 3)), "rgb": np.zeros((0, 3))}, "empty"),
+    ({"xyz": np.zeros((4, 2)), "rgb": np.zeros((4, 3))}, "shape"),
+    ({"xyz": np.zeros((4, 3)), "rgb": np.zeros((3, 3))}, "colours"),
+    ({"xyz": np.array([[0, 0, np.nan]] * 2), "rgb": np.zeros((2, 3))}, "non-finite"),
+    ({"xyz": np.zeros((2, 3)), "rgb": np.zeros((2, 3)), "sh_degree": 4}, "sh_degree"),
+    ({"xyz": np.zeros((2, 3)), "rgb": np.zeros((2, 3)), "initial_opacity": 1.0}, "initial_opacity"),
+])
+def test_invalid_input(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        init_from_points(**kwargs)
+
+
+def test_random_cube_points():
+    xyz, rgb = random_cube_points(1000, half_extent=1.3, seed=3)
+    assert xyz.shape == (1000, 3) and rgb.shape == (1000, 3)
+    assert np.all(np.abs(xyz) <= 1.3) and np.all((rgb >= 0) & (rgb <= 1))
+    assert xyz.min() < -1.2 and xyz.max() > 1.2  # covers the cube
+    again, _ = random_cube_points(1000, half_extent=1.3, seed=3)
+    assert np.array_equal(xyz, again)
