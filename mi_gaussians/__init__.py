@@ -14,8 +14,9 @@ __version__ = "0.1.0"
 
 from .data.camera import Camera
 from .model.gaussians import Gaussians
+from .raster.rasterize import RenderOutput, render
 from . import plugins as _plugins
 
 _plugins.install()
 
-__all__ = ["Camera", "Gaussians", "__version__"]
+__all__ = ["Camera", "RenderOutput", "render", "Gaussians", "__version__"]

@@ -13,7 +13,7 @@ import importlib
 import mitsuba as mi
 
 # Each module defines ``register()`` that calls mi.register_integrator / mi.register_shape for the active variant.
-_PLUGIN_MODULES: tuple[str, ...] = ()
+_PLUGIN_MODULES: tuple[str, ...] = ("splat_integrator",)
 
 
 def supported_variant(variant: str | None) -> bool:

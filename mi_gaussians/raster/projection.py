@@ -93,12 +93,31 @@ def quaternion_to_matrix(q_wxyz: "mi.Vector4f") -> "mi.Matrix3f":
     )
 
 
-def project(g: Gaussians, view: ViewParams, sh_degree: int, cfg: RasterConfig) -> Projected:
-    n = g.n
-    means = dr.unravel(mi.Point3f, g.means.array)
-    log_scales = dr.unravel(mi.Vector3f, g.scales.array)
-    quats = dr.unravel(mi.Vector4f, g.rotations.array)
-    opacity = dr.rcp(1.0 + dr.exp(-g.opacities.array))
+@dataclass
+class GaussianArrays:
+    """Activated per-Gaussian inputs of the projection (size N), AD-tracked; built from ``Gaussians`` or from
+    a Mitsuba ``ellipsoids`` shape."""
+
+    means: "mi.Point3f"
+    sigmas: "mi.Vector3f"          # standard deviations (exp of the log-scales)
+    quats: "mi.Vector4f"           # (w, x, y, z), any norm
+    opacity: "mi.Float"            # in (0, 1)
+    sh_dc: "mi.Vector3f"
+    sh_rest: list                  # (degree + 1)^2 - 1 mi.Vector3f, band order, active bands only
+    sh_degree: int
+
+    @classmethod
+    def from_gaussians(cls, g: Gaussians, sh_degree: int) -> "GaussianArrays":
+        dc, rest = gather_sh_coeffs(g.sh_dc, g.sh_rest, sh_degree)
+        return cls(means=dr.unravel(mi.Point3f, g.means.array),
+                   sigmas=dr.exp(dr.unravel(mi.Vector3f, g.scales.array)),
+                   quats=dr.unravel(mi.Vector4f, g.rotations.array),
+                   opacity=dr.rcp(1.0 + dr.exp(-g.opacities.array)),
+                   sh_dc=dc, sh_rest=rest, sh_degree=sh_degree)
+
+
+def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig) -> Projected:
+    means, s, quats, opacity = ga.means, ga.sigmas, ga.quats, ga.opacity
 
     # Camera space
     tcam = view.R @ means + view.t
@@ -121,7 +140,6 @@ def project(g: Gaussians, view: ViewParams, sh_degree: int, cfg: RasterConfig) -
 
     # T = J W (2 x 3), M = R S (3 x 3), Sigma2D = (T M)(T M)^T
     Rq = quaternion_to_matrix(quats)
-    s = dr.exp(log_scales)
     W = view.R
     T0 = j00 * W[0] + j02 * W[2]      # rows of J W (W[i] is the i-th row of the view rotation)
     T1 = j11 * W[1] + j12 * W[2]
@@ -141,8 +159,7 @@ def project(g: Gaussians, view: ViewParams, sh_degree: int, cfg: RasterConfig) -
     # Colour from SH (view direction from the camera centre to the mean)
     d = means - view.center
     dirs = d * dr.rsqrt(fmax(dr.squared_norm(d), 1e-30))
-    dc, rest = gather_sh_coeffs(g.sh_dc, g.sh_rest, sh_degree)
-    color = mi.Color3f(eval_sh_colors(dc, rest, dirs, sh_degree, normalize=False))
+    color = mi.Color3f(eval_sh_colors(ga.sh_dc, ga.sh_rest, dirs, ga.sh_degree, normalize=False))
 
     # ---- footprint, culling, tile rectangle (no gradients needed)
     with dr.suspend_grad():

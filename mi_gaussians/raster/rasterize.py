@@ -24,7 +24,7 @@ from ..model.gaussians import Gaussians
 from .binning import Bins, bin_gaussians
 from .blend import BlendStats, blend, make_frame
 from .mathops import fmax
-from .projection import Projected, ViewParams, project
+from .projection import GaussianArrays, Projected, ViewParams, project
 
 
 @dataclass
@@ -55,18 +55,26 @@ def _check_background(background) -> tuple[float, float, float]:
 
 def render(g: Gaussians, camera: Camera, background=(0.0, 0.0, 0.0), sh_degree: int | None = None,
            cfg: RasterConfig = RasterConfig()) -> RenderOutput:
-    if cfg.tile_size != 16:
-        raise ValueError("only 16 x 16 tiles are implemented")
+    """Render raw 3DGS parameters (see the module docstring)."""
     deg = g.sh_degree if sh_degree is None else int(sh_degree)
     if deg < 0 or deg > g.sh_degree:
         raise ValueError(f"sh_degree {sh_degree} is outside 0..{g.sh_degree} (the model's SH degree)")
+    ga = GaussianArrays.from_gaussians(g, deg) if g.n > 0 else None
+    return render_arrays(ga, camera, background, cfg)
+
+
+def render_arrays(ga: GaussianArrays | None, camera: Camera, background=(0.0, 0.0, 0.0),
+                  cfg: RasterConfig = RasterConfig()) -> RenderOutput:
+    """Render activated Gaussians (``None`` or N = 0: an empty scene)."""
+    if cfg.tile_size != 16:
+        raise ValueError("only 16 x 16 tiles are implemented")
     bg = _check_background(background)
     W, H = camera.width, camera.height
     tiles_x, tiles_y = (W + 15) // 16, (H + 15) // 16
 
     view = ViewParams.from_camera(camera)
-    if g.n > 0:
-        proj = project(g, view, deg, cfg)
+    if ga is not None and dr.width(ga.opacity) > 0:
+        proj = project(ga, view, cfg)
         bins = bin_gaussians(proj.depth, proj.rect, proj.tile_count, tiles_x, tiles_y)
         radii = proj.radii
     else:
