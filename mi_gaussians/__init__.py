@@ -13,10 +13,11 @@ with ``mi.set_variant``), exactly as Mitsuba's own Python plugins do, and does n
 __version__ = "0.1.0"
 
 from .data.camera import Camera
+from .data.dataset import Dataset, View, load_dataset
 from .model.gaussians import Gaussians
 from .raster.rasterize import RenderOutput, render
 from . import plugins as _plugins
 
 _plugins.install()
 
-__all__ = ["Camera", "RenderOutput", "render", "Gaussians", "__version__"]
+__all__ = ["Camera", "Dataset", "View", "load_dataset", "RenderOutput", "render", "Gaussians", "__version__"]

@@ -231,6 +231,9 @@ def main(argv=None) -> int:
 
 
 def _one_line(e: BaseException) -> str:
+    # Dr.Jit/Mitsuba wrap errors raised inside custom operations ("... (see above)"): report the innermost cause
+    while (e.__cause__ or e.__context__) is not None and "see above" in str(e):
+        e = e.__cause__ or e.__context__
     lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
     return " ".join(lines) if len(lines) <= 3 else " ".join(lines[:3]) + " ..."
 

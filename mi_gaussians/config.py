@@ -19,6 +19,19 @@ class DataConfig:
 
 
 @dataclass(frozen=True)
+class ConvertConfig:
+    """Structure from motion (``mi_gaussians.data.convert``), the reference convert.py's choices on pycolmap."""
+
+    camera_model: str = "OPENCV"             # COLMAP model of the shared camera (reference: OPENCV)
+    single_camera: bool = True               # one camera for all images (reference: --ImageReader.single_camera 1)
+    max_image_size: int = 3200               # SIFT extraction: larger images are downscaled (COLMAP 3.x default)
+    max_num_features: int = 8192             # SIFT features per image (COLMAP's default)
+    num_threads: int = -1                    # -1: all cores
+    resize: bool = False                     # also write images_2/4/8 (reference: --resize)
+    seed: int = 0                            # mapper random seed
+
+
+@dataclass(frozen=True)
 class RasterConfig:
     tile_size: int = 16
     near_plane: float = 0.2                  # cull Gaussians with view-space z <= near_plane

@@ -19,6 +19,9 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None):
         suffix = os.path.splitext(path)[1]
     fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".tmp" + suffix, dir=folder)
     os.close(fd)
+    umask = os.umask(0)   # mkstemp creates 0600; give the file the permissions a plain open() would
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
     try:
         yield tmp
         os.replace(tmp, path)

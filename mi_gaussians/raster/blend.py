@@ -44,6 +44,9 @@ class BlendStats:
 
     def __init__(self):
         self.means2d_grad = None   # dL / d mean2d in pixels, mi.Vector2f (N,), after dr.backward
+        self.forward_evaluations = None    # (pixel x Gaussian) evaluations of the forward blend (mi.UInt32 (1,))
+        self.backward_evaluations = None   # same for the backward blend, after dr.backward
+
 
 
 @dataclass
@@ -98,7 +101,8 @@ def _lane_pixels(frame: Frame, n_lanes: int):
 
 
 def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cfg: RasterConfig):
-    """Returns (C4 (H*W*4: r, g, b, depth-sum), T (H*W), lane-order T (lanes*4), lane-order last index (lanes*4))."""
+    """Returns ([r, g, b, depth-sum, T] images (H*W each), lane-order T (lanes*4), lane-order last index (lanes*4),
+    number of (pixel x Gaussian) evaluations (lazy UInt32))."""
     P = PIXELS_PER_LANE
     n_lanes = bins.n_tiles * LANES_PER_TILE
     lane, tile, px, pys, valid, pix = _lane_pixels(frame, n_lanes)
@@ -145,24 +149,24 @@ def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cf
              tuple(dr.zeros(mi.Color3f, n_lanes) for _ in range(P)),
              tuple(dr.zeros(mi.Float, n_lanes) for _ in range(P)),
              tuple(mi.UInt32(start) for _ in range(P)))
-    _, _, T, C, D, last = dr.while_loop(state, cond, body, label="mi_gaussians.blend_forward")
-    dr.eval(T, C, D, last)   # one loop kernel; otherwise each consumer below would re-run the loop
+    i_end, _, T, C, D, last = dr.while_loop(state, cond, body, label="mi_gaussians.blend_forward")
+    dr.eval(i_end, T, C, D, last)   # one loop kernel; otherwise each consumer below would re-run the loop
+    evaluations = dr.sum(i_end - start) * P        # lazy: read only by benchmarks
 
     npix = frame.width * frame.height
-    C4 = dr.zeros(mi.Float, npix * 4)
-    T_img = dr.zeros(mi.Float, npix)
+    img = [dr.zeros(mi.Float, npix) for _ in range(5)]     # r, g, b, depth sum, T in image order
     for k in range(P):
-        dr.scatter(C4, mi.Vector4f(C[k].x, C[k].y, C[k].z, D[k]), pix[k], active=valid[k])
-        dr.scatter(T_img, T[k], pix[k], active=valid[k])
+        for c, v in enumerate((C[k].x, C[k].y, C[k].z, D[k], T[k])):
+            dr.scatter(img[c], v, pix[k], active=valid[k])
     T_lane = dr.zeros(mi.Float, n_lanes * P)
     last_lane = dr.zeros(mi.UInt32, n_lanes * P)
     dr.scatter(T_lane, mi.Vector4f(T[0], T[1], T[2], T[3]), lane)
     dr.scatter(last_lane, _array_types()[1](last[0], last[1], last[2], last[3]), lane)
-    return C4, T_img, T_lane, last_lane
+    return img, T_lane, last_lane, evaluations
 
 
-def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane, last_lane, gC4, gT, n: int):
-    """Gradients w.r.t. the packed features: (geo grads (N*8), colour grads (N*4))."""
+def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane, last_lane, g_img: list, n: int):
+    """Gradients w.r.t. the packed features: (geo grads (N*8), colour grads (N*4), evaluations (lazy UInt32))."""
     P = PIXELS_PER_LANE
     n_lanes = bins.n_tiles * LANES_PER_TILE
     lane, tile, px, pys, valid, pix = _lane_pixels(frame, n_lanes)
@@ -174,9 +178,8 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
     last = dr.gather(_array_types()[1], last_lane, lane)
     gpix, gTTf = [], []
     for k in range(P):
-        g4 = dr.gather(mi.Vector4f, gC4, pix[k], active=valid[k])
-        gpix.append(g4)
-        gTTf.append(dr.gather(mi.Float, gT, pix[k], active=valid[k]) * Tf[k])
+        gpix.append(mi.Vector4f(*[dr.gather(mi.Float, g_img[c], pix[k], active=valid[k]) for c in range(4)]))
+        gTTf.append(dr.gather(mi.Float, g_img[4], pix[k], active=valid[k]) * Tf[k])
     inst = bins.gaussian
     alpha_min, alpha_max = cfg.alpha_min, cfg.alpha_max
     ggeo = dr.zeros(mi.Float, n * GEO)
@@ -243,29 +246,31 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
     state = (mi.UInt32(i0), tuple(mi.Float(Tf[k]) for k in range(P)),
              tuple(dr.zeros(mi.Float, n_lanes) for _ in range(P)))
     dr.while_loop(state, cond, body, label="mi_gaussians.blend_backward")
-    return ggeo, gcol
+    evaluations = dr.sum(i0 - start) * P
+    return ggeo, gcol, evaluations
 
 
 class BlendOp(dr.CustomOp):
-    """Differentiable blend: inputs are per-Gaussian screen-space features, outputs (C4, T)."""
+    """Differentiable blend: inputs are per-Gaussian screen-space features, outputs (r, g, b, depth sum, T) images."""
 
     def eval(self, mean2d, conic, opacity, color, depth, bins, frame, cfg, stats):
         self.bins, self.frame, self.cfg, self.stats = bins, frame, cfg, stats
         self.n = dr.width(opacity)
         self.geo = _pack([mean2d.x, mean2d.y, conic.x, conic.y, conic.z, opacity, depth], GEO)
         self.col = _pack([color.x, color.y, color.z], COL)
-        C4, T, self.T_lane, self.last_lane = blend_forward(self.geo, self.col, bins, frame, cfg)
-        return C4, T
+        img, self.T_lane, self.last_lane, stats.forward_evaluations = blend_forward(self.geo, self.col, bins,
+                                                                                    frame, cfg)
+        return tuple(img)
 
     def forward(self):
         raise NotImplementedError("mi_gaussians: forward-mode derivatives of the blend are not implemented; "
                                   "use reverse mode (dr.backward)")
 
     def backward(self):
-        gC4, gT = self.grad_out()
         n = self.n
-        ggeo, gcol = blend_backward(self.geo, self.col, self.bins, self.frame, self.cfg, self.T_lane,
-                                    self.last_lane, mi.Float(gC4), mi.Float(gT), n)
+        ggeo, gcol, self.stats.backward_evaluations = blend_backward(
+            self.geo, self.col, self.bins, self.frame, self.cfg, self.T_lane, self.last_lane,
+            [mi.Float(x) for x in self.grad_out()], n)
         idx = dr.arange(mi.UInt32, n)
         gg = [dr.gather(mi.Float, ggeo, idx * GEO + k) for k in range(7)]
         gc = [dr.gather(mi.Float, gcol, idx * COL + k) for k in range(3)]
@@ -288,11 +293,11 @@ def make_frame(width: int, height: int, tiles_x: int) -> Frame:
 
 def blend(mean2d, conic, opacity, color, depth, bins: Bins, frame: Frame, cfg: RasterConfig,
           stats: BlendStats | None = None):
-    """(C4 (H*W*4: r, g, b, depth-sum), T (H*W)); differentiable when any input has gradients enabled."""
+    """(r, g, b, depth-sum, T) images (H*W each); differentiable when any input has gradients enabled."""
     stats = BlendStats() if stats is None else stats
     if dr.grad_enabled(mean2d, conic, opacity, color, depth):
         return dr.custom(BlendOp, mean2d, conic, opacity, color, depth, bins, frame, cfg, stats)
     geo = _pack([mean2d.x, mean2d.y, conic.x, conic.y, conic.z, opacity, depth], GEO)
     col = _pack([color.x, color.y, color.z], COL)
-    C4, T, _, _ = blend_forward(geo, col, bins, frame, cfg)
-    return C4, T
+    img, _, _, stats.forward_evaluations = blend_forward(geo, col, bins, frame, cfg)
+    return tuple(img)

@@ -87,16 +87,12 @@ def render_arrays(ga: GaussianArrays | None, camera: Camera, background=(0.0, 0.
     stats = BlendStats()
     npix = W * H
     if bins.n_instances == 0:
-        C4 = dr.zeros(mi.Float, npix * 4)
+        r, gch, b, dsum = (dr.zeros(mi.Float, npix) for _ in range(4))
         T = dr.full(mi.Float, 1.0, npix)
     else:
-        C4, T = blend(proj.mean2d, proj.conic, proj.opacity, proj.color, proj.depth, bins, frame, cfg, stats)
-
-    idx = dr.arange(mi.UInt32, npix)
-    r = dr.gather(mi.Float, C4, idx * 4 + 0) + T * bg[0]
-    gch = dr.gather(mi.Float, C4, idx * 4 + 1) + T * bg[1]
-    b = dr.gather(mi.Float, C4, idx * 4 + 2) + T * bg[2]
-    dsum = dr.gather(mi.Float, C4, idx * 4 + 3)
+        r, gch, b, dsum, T = blend(proj.mean2d, proj.conic, proj.opacity, proj.color, proj.depth, bins, frame,
+                                   cfg, stats)
+    r, gch, b = r + T * bg[0], gch + T * bg[1], b + T * bg[2]
     alpha = 1.0 - T
     depth = dr.select(alpha > 1e-12, dsum / fmax(alpha, 1e-12), 0.0)
     rgb = mi.TensorXf(dr.ravel(mi.Color3f(r, gch, b)), (H, W, 3))

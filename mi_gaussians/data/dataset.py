@@ -1,0 +1,316 @@
+"""Datasets: detect the layout of a scene folder, validate it completely, and describe its views.
+
+Layouts (checked in this order, like the reference 3DGS):
+
+- ``colmap``: ``images/`` + ``sparse/0`` (or ``sparse/``) with ``cameras``, ``images``, ``points3D`` as .bin or .txt.
+  Test split: images sorted by name, ``index % test_every == 0`` is test. Initial points: the SfM points (random
+  points around the cameras, as for ngp, when the model has none).
+  With ``resolution = r > 1`` and an ``images_r/`` folder, its images are read instead of resampling ``images/``.
+- ``blender``: ``transforms_train.json`` + ``transforms_test.json`` (NeRF-synthetic). The files define the split
+  (``transforms_val.json`` is ignored, as in the reference); ``test_every = 0`` merges the test views into train,
+  as the reference does without ``--eval``. Initial points: random in ``[-1.3, 1.3]^3`` (see ``pointcloud.py``).
+- ``ngp``: one ``transforms.json`` (instant-ngp / nerfstudio). Frames whose image file is missing are skipped with a
+  logged warning (instant-ngp's own fox scene lists 17 such frames); the split is the COLMAP one over the remaining
+  frames. Initial points: random in a cube around the cameras' focus point (see ``pointcloud.py``).
+
+Every view's camera is a pinhole :class:`Camera` for the image ``View.load_image`` returns: distorted cameras (COLMAP
+SIMPLE_RADIAL/RADIAL/OPENCV/FULL_OPENCV, OpenCV coefficients in transforms files) are undistorted in memory the way
+COLMAP's image undistorter does it. Resolution ``r`` gives images of ``round(W / r) x round(H / r)`` (as the reference's
+``-r``), area-averaged; intrinsics are scaled per axis.
+
+Loading validates everything that can be checked without decoding pixels (layout, files, JSON, camera models, poses,
+image sizes from the headers) and raises ``ValueError`` with one line naming the file. It writes nothing.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..config import DataConfig
+from . import blender as _blender
+from . import colmap as _colmap
+from . import pointcloud as _pc
+from .camera import Camera
+from .images import ImageLoader, Undistorter, color_space_of, image_size
+
+log = logging.getLogger(__name__)
+
+_DEFAULTS = DataConfig()
+LAYOUTS = ("colmap", "blender", "ngp")
+
+
+@dataclass(frozen=True)
+class View:
+    """One image and its camera. ``camera`` already matches the loaded image (resolution, undistortion)."""
+
+    name: str
+    camera: Camera
+    image_path: Path
+    loader: ImageLoader = field(repr=False, compare=False)
+
+    def load_image(self) -> np.ndarray:
+        """The image as (H, W, 3) float32 (H, W = camera.height, camera.width), RGBA composited over the background.
+
+        Values are those of the file (see ``Dataset.color_space``). Decoded on every call (nothing is cached)."""
+        return self.loader.load(self.image_path)[0]
+
+    def load_alpha(self) -> np.ndarray:
+        """The alpha channel as (H, W) float32 in [0, 1], resampled like the image; ones when the file has none."""
+        a = self.loader.load(self.image_path)[1]
+        return np.ones((self.camera.height, self.camera.width), np.float32) if a is None else a
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """A loaded scene: train/test views, initial points, background, and the colour encoding of the images."""
+
+    root: Path
+    layout: str                          # 'colmap' | 'blender' | 'ngp'
+    train: list[View]
+    test: list[View]
+    points_xyz: np.ndarray | None = field(repr=False)   # (M, 3) float32
+    points_rgb: np.ndarray | None = field(repr=False)   # (M, 3) float32 in [0, 1]
+    background: np.ndarray = field(repr=False)          # (3,) float32
+    color_space: str = "srgb"            # 'srgb' (PNG/JPEG values / 255, not linearized) or 'linear' (EXR)
+    resolution: int = 1
+
+    @property
+    def views(self) -> list[View]:
+        """Train views followed by test views."""
+        return list(self.train) + list(self.test)
+
+    @property
+    def center(self) -> np.ndarray:
+        """Mean of the train camera centres, (3,) float64."""
+        return _pc.camera_extent(np.stack([v.camera.center for v in self.train]))[0]
+
+    @property
+    def extent(self) -> float:
+        """Scene extent: 1.1 * max distance of the train camera centres from their mean (3DGS ``getNerfppNorm``)."""
+        return _pc.camera_extent(np.stack([v.camera.center for v in self.train]))[1]
+
+
+# ---------------------------------------------------------------------------------------------------- detection
+def detect_layout(path: str | os.PathLike) -> str:
+    """'colmap', 'blender' or 'ngp' for a scene folder; ``ValueError`` for anything else."""
+    root = Path(path)
+    if not root.exists():
+        raise ValueError(f"{root}: dataset folder not found")
+    if not root.is_dir():
+        raise ValueError(f"{root}: not a folder (give the scene folder)")
+    if _colmap.find_model_dir(root) is not None:
+        return "colmap"
+    if (root / "transforms_train.json").is_file():
+        return "blender"
+    if (root / "transforms.json").is_file():
+        return "ngp"
+    if not any(root.iterdir()):
+        raise ValueError(f"{root}: empty folder, not a dataset")
+    raise ValueError(f"{root}: unknown dataset layout (expected images/ + sparse/0/ for COLMAP, "
+                     "transforms_train.json + transforms_test.json for Blender, or transforms.json for instant-ngp)")
+
+
+# ---------------------------------------------------------------------------------------------------- helpers
+def _reduced(n: int, r: int) -> int:
+    return max(1, int(round(n / r)))
+
+
+def _check_options(resolution, background, test_every, random_points, seed) -> np.ndarray:
+    if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) or resolution < 1:
+        raise ValueError(f"resolution must be a positive integer divisor (1, 2, 4, 8, ...), got {resolution!r}")
+    if isinstance(test_every, bool) or not isinstance(test_every, (int, np.integer)) or test_every < 0:
+        raise ValueError(f"test_every must be an integer >= 0 (0: no test split), got {test_every!r}")
+    if isinstance(random_points, bool) or not isinstance(random_points, (int, np.integer)) or random_points < 0:
+        raise ValueError(f"random_points must be an integer >= 0, got {random_points!r}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise ValueError(f"seed must be an integer, got {seed!r}")
+    try:
+        bg = np.asarray(background, dtype=np.float32).reshape(3)
+    except (TypeError, ValueError):
+        raise ValueError(f"background must be three numbers (r, g, b), got {background!r}") from None
+    if not np.all(np.isfinite(bg)):
+        raise ValueError(f"background must be finite, got {background!r}")
+    return bg
+
+
+class _Builder:
+    """Turns (image file, full-resolution camera) pairs into Views for one resolution and background."""
+
+    def __init__(self, resolution: int, background: np.ndarray):
+        self.r = resolution
+        self.bg = tuple(float(b) for b in background)
+        self._undistorters: dict[tuple, Undistorter] = {}
+
+    def undistorter(self, model: str, width: int, height: int, params: tuple, source: str) -> Undistorter:
+        key = (model, width, height, tuple(params))
+        u = self._undistorters.get(key)
+        if u is None:
+            u = self._undistorters[key] = Undistorter(model, width, height, params, source)
+        return u
+
+    def view(self, name: str, image_path: Path, file_size: tuple[int, int], full_size: tuple[int, int],
+             w2c: np.ndarray, pinhole: tuple[float, float, float, float] | None,
+             undistorter: Undistorter | None, source: str, reduced_file: bool = False) -> View:
+        """``full_size``/``pinhole``: the camera's own size and (fx, fy, cx, cy) (ignored with an undistorter).
+        ``file_size``: the image file's (w, h) from its header. ``reduced_file``: the file is already reduced by r
+        (an ``images_r`` folder), so its size may differ from round(W / r) by one pixel (other tools round
+        differently) and the camera follows the file."""
+        W, H = full_size
+        fw, fh = file_size
+        if reduced_file:
+            ew, eh = W / self.r, H / self.r
+            if abs(fw - ew) > 1.0 or abs(fh - eh) > 1.0:
+                raise ValueError(f"{image_path}: image is {fw}x{fh}, but {source} says {W}x{H}, i.e. about "
+                                 f"{_reduced(W, self.r)}x{_reduced(H, self.r)} at resolution 1/{self.r}")
+            src = (fw, fh)
+        else:
+            if (fw, fh) != (W, H):
+                raise ValueError(f"{image_path}: image is {fw}x{fh}, but {source} says {W}x{H}")
+            src = (_reduced(W, self.r), _reduced(H, self.r))
+        try:
+            if undistorter is None:
+                fx, fy, cx, cy = pinhole
+                cam = Camera(W, H, fx, fy, cx, cy, w2c, name).scaled(*src)
+                out = src
+            else:
+                pw, ph, fx, fy, cx, cy = undistorter.pinhole
+                out = (src if (pw, ph) == (W, H) else (_reduced(pw, self.r), _reduced(ph, self.r)))
+                cam = Camera(pw, ph, fx, fy, cx, cy, w2c, name).scaled(*out)
+        except ValueError as e:
+            raise ValueError(f"{source}: {e}") from None
+        return View(name, cam, image_path, ImageLoader(out, src, self.bg, undistorter))
+
+
+def _split_by_index(views: list[View], test_every: int) -> tuple[list[View], list[View]]:
+    views = sorted(views, key=lambda v: v.name)
+    if test_every == 0:
+        return views, []
+    return ([v for i, v in enumerate(views) if i % test_every != 0],
+            [v for i, v in enumerate(views) if i % test_every == 0])
+
+
+# ---------------------------------------------------------------------------------------------------- COLMAP
+def _load_colmap(root: Path, b: _Builder, test_every: int, n_points: int, seed: int):
+    model_dir = _colmap.find_model_dir(root)
+    model = _colmap.read_model(model_dir)
+    images_dir = root / "images"
+    reduced = b.r > 1 and (root / f"images_{b.r}").is_dir()
+    if reduced:
+        images_dir = root / f"images_{b.r}"
+    if not images_dir.is_dir():
+        raise ValueError(f"{images_dir}: image folder not found (COLMAP layout: images/ next to sparse/)")
+    cam_file = model.file("cameras")
+    views = []
+    for im in model.images:
+        c = model.cameras[im.camera_id]
+        path = images_dir / im.name
+        if not path.is_file():
+            raise ValueError(f"{path}: image file not found (listed in {model.file('images')})")
+        und = None
+        if not c.is_pinhole:
+            und = b.undistorter(c.model, c.width, c.height, c.params, f"{cam_file}: camera {c.camera_id}")
+        views.append(b.view(im.name, path, image_size(path), (c.width, c.height), im.world_to_camera,
+                            None if und else c.pinhole_intrinsics(), und,
+                            f"{cam_file} (camera {c.camera_id})", reduced_file=reduced))
+    train, test = _split_by_index(views, test_every)
+    if len(model.points_xyz):
+        return train, test, model.points_xyz, model.points_rgb
+    log.warning("%s: the model has no 3D points; using %d random points around the cameras", model.file("points3D"),
+                n_points)
+    return (train, test) + _points_around(train, n_points, seed)
+
+
+def _points_around(train: list[View], n_points: int, seed: int):
+    """Random initial points in a cube around the focus point of the train cameras (see pointcloud.py)."""
+    if n_points <= 0 or not train:
+        return None, None
+    centers = np.stack([v.camera.center for v in train])
+    forward = np.stack([v.camera.world_to_camera[2, :3] for v in train])   # camera +z in world space
+    return _pc.points_around_cameras(n_points, centers, forward, seed)
+
+
+# ---------------------------------------------------------------------------------------------------- transforms
+def _frame_views(path: Path, b: _Builder, skip_missing: bool) -> list[View]:
+    frames = _blender.read_frames(path)
+    missing = [f for f in frames if not f.exists]
+    if missing and not skip_missing:
+        raise ValueError(f"{missing[0].image_path}: image file not found (frame {missing[0].index} of {path})")
+    if missing:
+        names = ", ".join(f.name for f in missing[:5]) + (", ..." if len(missing) > 5 else "")
+        log.warning("%s: skipping %d of %d frames whose image file is missing (%s)", path, len(missing),
+                    len(frames), names)
+    views = []
+    for f in frames:
+        if not f.exists:
+            continue
+        intr = f.intrinsics
+        w2c = np.linalg.inv(f.camera_to_world_gl @ np.diag([1.0, -1.0, -1.0, 1.0]))
+        source = f"{path} (frame {f.index})"
+        und = None
+        if intr.distortion is not None:
+            model, params = intr.distortion
+            und = b.undistorter(model, intr.width, intr.height, params, source)
+        views.append(b.view(f.name, f.image_path, f.file_size, (intr.width, intr.height), w2c,
+                            (intr.fx, intr.fy, intr.cx, intr.cy), und, source))
+    if not views:
+        raise ValueError(f"{path}: none of the {len(frames)} frames has its image file")
+    return views
+
+
+def _load_blender(root: Path, b: _Builder, test_every: int, n_points: int, seed: int):
+    train = _frame_views(root / "transforms_train.json", b, skip_missing=False)      # file order, as the reference
+    test_file = root / "transforms_test.json"
+    if not test_file.is_file():
+        raise ValueError(f"{test_file}: file not found (the Blender layout needs transforms_train.json and "
+                         "transforms_test.json)")
+    test = _frame_views(test_file, b, skip_missing=False)
+    if test_every == 0:
+        train, test = train + test, []
+    xyz, rgb = _pc.blender_random_points(n_points, seed) if n_points > 0 else (None, None)
+    return train, test, xyz, rgb
+
+
+def _load_ngp(root: Path, b: _Builder, test_every: int, n_points: int, seed: int):
+    views = _frame_views(root / "transforms.json", b, skip_missing=True)
+    train, test = _split_by_index(views, test_every)
+    return (train, test) + _points_around(train, n_points, seed)
+
+
+# ---------------------------------------------------------------------------------------------------- entry point
+def load_dataset(path: str | os.PathLike, resolution: int = _DEFAULTS.resolution,
+                 background=_DEFAULTS.background, test_every: int = _DEFAULTS.test_every,
+                 random_points: int = _DEFAULTS.random_points, seed: int = _DEFAULTS.seed) -> Dataset:
+    """Load and validate a scene folder (layout detected, see the module docstring). Lazy: no pixels are decoded.
+
+    resolution: divide the image size by this (``round(W / r) x round(H / r)``); background: (3,) colour that RGBA
+    images are composited over; test_every: hold-out period for COLMAP/ngp (0: all train; Blender: 0 merges test into
+    train); random_points / seed: initial points for layouts without SfM points (0: none).
+    Defaults are those of :class:`mi_gaussians.config.DataConfig`.
+    """
+    bg = _check_options(resolution, background, test_every, random_points, seed)
+    root = Path(path)
+    layout = detect_layout(root)
+    b = _Builder(int(resolution), bg)
+    if layout == "colmap":
+        train, test, xyz, rgb = _load_colmap(root, b, int(test_every), int(random_points), int(seed))
+    elif layout == "blender":
+        train, test, xyz, rgb = _load_blender(root, b, int(test_every), int(random_points), int(seed))
+    else:
+        train, test, xyz, rgb = _load_ngp(root, b, int(test_every), int(random_points), int(seed))
+    if not train:
+        raise ValueError(f"{root}: no training views (test_every={test_every} leaves none)")
+    spaces = {color_space_of(v.image_path) for v in train + test}
+    if len(spaces) > 1:
+        raise ValueError(f"{root}: mixed image encodings (EXR and PNG/JPEG) in one dataset")
+    names = [v.name for v in train + test]
+    if len(set(names)) != len(names):
+        dup = next(n for n in names if names.count(n) > 1)
+        raise ValueError(f"{root}: image {dup!r} appears more than once")
+    return Dataset(root=root, layout=layout, train=train, test=test, points_xyz=xyz, points_rgb=rgb,
+                   background=bg, color_space=spaces.pop(), resolution=int(resolution))

@@ -1,0 +1,123 @@
+"""``mi-gs`` end to end: help, info, render (camera JSON, dataset views, scene XML) and one-line errors."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import mi_gaussians as mig
+from mi_gaussians.imwrite import srgb_to_linear
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENES = ROOT / "scenes"
+
+
+def run(*args):
+    """Run the installed ``mi-gs`` (outside the source tree, so the installed package is what runs)."""
+    exe = Path(sys.executable).parent / "mi-gs"
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-c", "import sys; from mi_gaussians.cli import main; "
+                                                                 "sys.exit(main())"]
+    return subprocess.run(cmd + [str(a) for a in args], capture_output=True, text=True, timeout=600,
+                          cwd=tempfile.gettempdir())
+
+
+def assert_one_line_error(res, *needles):
+    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
+    err = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith("mi-gs: error: "), res.stderr
+    assert "Traceback" not in res.stderr
+    for n in needles:
+        assert n in err[0], (n, err[0])
+
+
+def test_console_script_installed():
+    exe = Path(sys.executable).parent / "mi-gs"
+    assert exe.exists() or shutil.which("mi-gs"), "the mi-gs console script is not installed"
+
+
+def test_help_lists_only_real_subcommands():
+    res = run("--help")
+    assert res.returncode == 0
+    for cmd in ("info", "render", "convert"):
+        assert cmd in res.stdout
+
+
+def test_info_on_ply():
+    res = run("info", SCENES / "tiny_gaussians.ply")
+    assert res.returncode == 0, res.stderr
+    info = json.loads(res.stdout)
+    assert info["gaussians"] == 2000 and info["sh_degree"] == 1
+
+
+def test_render_ply_with_camera_json(tmp_path):
+    exr, png = tmp_path / "out.exr", tmp_path / "out.png"
+    for out in (exr, png):
+        res = run("render", SCENES / "tiny_gaussians.ply", "--camera", SCENES / "tiny_gaussians_camera.json",
+                  "-o", out, "--background", "1")
+        assert res.returncode == 0, res.stderr
+        assert out.exists()
+    import OpenEXR
+
+    with OpenEXR.File(str(exr)) as f:
+        rgb = np.asarray(f.channels()["RGB"].pixels, dtype=np.float32)
+    g = mig.Gaussians.load_ply(SCENES / "tiny_gaussians.ply")
+    ref = np.array(mig.render(g, mig.Camera.from_json(SCENES / "tiny_gaussians_camera.json"),
+                              background=(1, 1, 1)).rgb)
+    # the model holds sRGB-encoded colours (like 3DGS models of photos); EXR files are linear
+    np.testing.assert_allclose(rgb, srgb_to_linear(ref), atol=1e-5)
+    from PIL import Image
+
+    assert Image.open(png).size == (320, 240)
+
+
+def test_render_scene_xml(tmp_path):
+    out = tmp_path / "scene.exr"
+    res = run("render", SCENES / "tiny_gaussians.xml", "-o", out)
+    assert res.returncode == 0, res.stderr
+    assert out.exists() and out.stat().st_size > 1000
+
+
+def test_render_dataset_views(tmp_path):
+    ply = tmp_path / "m.ply"
+    shutil.copy(SCENES / "tiny_gaussians.ply", ply)
+    ds_dir = ROOT / "tests" / "data" / "tiny_colmap"
+    if not ds_dir.exists():
+        pytest.skip("tests/data/tiny_colmap fixture missing")
+    out = tmp_path / "renders"
+    res = run("render", ply, "--dataset", ds_dir, "--split", "all", "-o", out)
+    assert res.returncode == 0, res.stderr
+    ds = mig.load_dataset(ds_dir)
+    assert len(list(out.glob("*.exr"))) == len(ds.views) and len(list(out.glob("*.png"))) == len(ds.views)
+
+
+def test_malformed_ply_is_one_line_error_and_writes_nothing(tmp_path):
+    bad = tmp_path / "bad.ply"
+    good = (SCENES / "tiny_gaussians.ply").read_bytes()
+    bad.write_bytes(good[: len(good) // 2])            # truncated
+    out = tmp_path / "out.png"
+    res = run("render", bad, "--camera", SCENES / "tiny_gaussians_camera.json", "-o", out)
+    assert_one_line_error(res, str(bad))
+    assert not out.exists() and os.listdir(tmp_path) == ["bad.ply"]
+    res = run("info", bad)
+    assert_one_line_error(res, str(bad))
+
+
+def test_missing_inputs_and_bad_scene(tmp_path):
+    assert_one_line_error(run("render", tmp_path / "nope.ply", "--camera", "x.json", "-o", tmp_path / "o.png"),
+                          "nope.ply")
+    assert_one_line_error(run("render", SCENES / "tiny_gaussians.ply", "--camera", tmp_path / "cam.json",
+                              "-o", tmp_path / "o.png"), "cam.json")
+    bad_xml = tmp_path / "bad.xml"
+    bad_xml.write_text("<scene version='3.0.0'><shape type='ellipsoids'></scene>")
+    assert_one_line_error(run("render", bad_xml, "-o", tmp_path / "o.exr"))
+    assert_one_line_error(run("render", SCENES / "tiny_gaussians.ply", "--camera",
+                              SCENES / "tiny_gaussians_camera.json", "-o", tmp_path / "o.jpg"), "o.jpg")
+    assert not (tmp_path / "o.png").exists() and not (tmp_path / "o.exr").exists()

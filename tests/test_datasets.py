@@ -1,0 +1,536 @@
+"""Dataset loading: layouts, camera conventions on real data, resolution, undistortion, compositing, EXR, errors.
+
+Real-data tests use ../shared/data (skipped when absent); the tiny scenes in tests/data are built by
+tests/data/make_fixtures.py.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from mi_gaussians.data.camera import Camera
+from mi_gaussians.data.dataset import detect_layout, load_dataset
+from mi_gaussians.data.images import Undistorter, read_image, resize_area
+
+DATA = Path(__file__).parent / "data"
+
+
+def need(shared_data: Path, rel: str) -> Path:
+    p = shared_data / rel
+    if not p.exists():
+        pytest.skip(f"{p} is not available")
+    return p
+
+
+def copy_fixture(name: str, tmp_path: Path) -> Path:
+    dst = tmp_path / name
+    shutil.copytree(DATA / name, dst)
+    return dst
+
+
+# ------------------------------------------------------------------------------------------------ COLMAP conventions
+def observations(rec, image, max_points: int | None = None):
+    """(3D points (N, 3), their 2D observations (N, 2)) of one pycolmap image."""
+    obs = [p for p in image.points2D if p.has_point3D()][:max_points]
+    xyz = np.array([rec.points3D[p.point3D_id].xyz for p in obs]).reshape(-1, 3)
+    uv = np.array([p.xy for p in obs]).reshape(-1, 2)
+    return xyz, uv
+
+
+@pytest.mark.parametrize("rel", ["mi_objects/colmap", "mi_room/colmap"])
+def test_colmap_reprojection_pinhole(shared_data, rel):
+    """Every COLMAP observation is reproduced by projecting its 3D point with OUR camera (from load_dataset) to within
+    the SfM noise (README: mean 0.73 / 0.52 px), and our projection equals pycolmap's own to 1e-6 px."""
+    import pycolmap
+
+    root = need(shared_data, rel)
+    ds = load_dataset(root)
+    by_name = {v.name: v for v in ds.views}
+    rec = pycolmap.Reconstruction(str(root / "sparse" / "0"))
+    errors = []
+    for image in rec.images.values():
+        cam = by_name[image.name].camera
+        xyz, uv = observations(rec, image)
+        ours, z = cam.project(xyz)
+        assert np.all(z > 0)
+        theirs = np.array([image.project_point(p) for p in xyz[:20]])
+        np.testing.assert_allclose(ours[:20], theirs, atol=1e-6)
+        errors.append(np.linalg.norm(ours - uv, axis=1))
+    errors = np.concatenate(errors)
+    assert len(errors) > 1000
+    assert errors.mean() < 1.0, f"mean reprojection error {errors.mean():.3f} px"
+
+
+def test_colmap_reprojection_undistorted_maryrose(shared_data):
+    """maryrose has a SIMPLE_RADIAL camera; views get the PINHOLE camera of the undistorted image.
+
+    Observations are distorted pixel coordinates; we map them into the undistorted image with COLMAP's own inverse
+    distortion (``pycolmap.Camera.cam_from_img``, then the undistorted pinhole intrinsics) and compare them with our
+    projection of the 3D points: the error is the SfM noise (0.80 px in the model). We also check our projection against
+    pycolmap's distorted projection mapped the same way (exact), at full resolution and at -r 8."""
+    import pycolmap
+
+    root = need(shared_data, "maryrose")
+    ds = load_dataset(root)
+    ds8 = load_dataset(root, resolution=8)
+    by_name = {v.name: v for v in ds.views}
+    by_name8 = {v.name: v for v in ds8.views}
+    rec = pycolmap.Reconstruction(str(root / "sparse" / "0"))
+    und = ds.train[0].loader.undistorter
+    assert und is not None and und.model == "SIMPLE_RADIAL"
+    errors = []
+    for k, image in enumerate(sorted(rec.images.values(), key=lambda i: i.name)):
+        if k % 7:
+            continue                                   # 10 of the 69 images keep the test fast
+        cam = by_name[image.name].camera
+        assert (cam.width, cam.height) == (3454, 3454)   # COLMAP's undistorted size
+        xyz, uv = observations(rec, image, max_points=3000)
+        ours, _ = cam.project(xyz)
+        errors.append(np.linalg.norm(ours - und.undistort_points(uv), axis=1))
+        exact = und.undistort_points(np.array([image.project_point(p) for p in xyz[:30]]))
+        np.testing.assert_allclose(ours[:30], exact, atol=1e-3)
+        cam8 = by_name8[image.name].camera
+        assert (cam8.width, cam8.height) == (432, 432)
+        ours8, _ = cam8.project(xyz[:30])
+        np.testing.assert_allclose(ours8, exact * [432 / 3454, 432 / 3454], atol=1e-3)
+    errors = np.concatenate(errors)
+    assert errors.mean() < 1.0, f"mean reprojection error {errors.mean():.3f} px"
+
+
+def test_tiny_colmap_exact(tmp_path):
+    """The tiny text model's observations are exact projections: our cameras reproduce them to 1e-9 px."""
+    import pycolmap
+
+    ds = load_dataset(DATA / "tiny_colmap", test_every=0)
+    rec = pycolmap.Reconstruction(str(DATA / "tiny_colmap" / "sparse" / "0"))
+    assert [v.name for v in ds.train] == ["a.png", "b.png", "c.png"]
+    for v in ds.train:
+        assert (v.camera.cx, v.camera.cy) == (11.5, 7.25)
+        image = rec.find_image_with_name(v.name)
+        xyz, uv = observations(rec, image)
+        np.testing.assert_allclose(v.camera.project(xyz)[0], uv, atol=1e-9)
+    assert ds.points_xyz.shape == (6, 3) and ds.points_xyz.dtype == np.float32
+    assert ds.points_rgb.dtype == np.float32 and ds.points_rgb.max() <= 1.0
+    # Camera.from_colmap agrees with the loader
+    image = rec.find_image_with_name("b.png")
+    cam = Camera.from_colmap(rec.cameras[image.camera_id], image)
+    np.testing.assert_allclose(cam.world_to_camera, ds.train[1].camera.world_to_camera)
+
+
+# ------------------------------------------------------------------------------------------------ Blender / splits
+def read_views_csv(root: Path) -> list[dict]:
+    with open(root / "views.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.mark.parametrize("scene", ["mi_objects", "mi_room"])
+def test_blender_and_colmap_layouts_agree(shared_data, scene):
+    """views.csv maps COLMAP names to Blender files: the same view gets the same camera from both layouts, and the
+    splits are the documented ones."""
+    root = need(shared_data, scene)
+    col = load_dataset(root / "colmap")
+    bl = load_dataset(root / "blender")
+    assert (col.layout, bl.layout) == ("colmap", "blender")
+    cams_c = {v.name: v.camera for v in col.views}
+    cams_b = {v.name: v.camera for v in bl.views}
+    rows = read_views_csv(root)
+    assert len(rows) == len(cams_c) == len(cams_b)
+    for row in rows:
+        a, b = cams_c[row["colmap_name"]], cams_b[row["blender_file"]]
+        np.testing.assert_allclose(a.world_to_camera, b.world_to_camera, atol=1e-5)
+        np.testing.assert_allclose([a.fx, a.fy, a.cx, a.cy, a.width, a.height],
+                                   [b.fx, b.fy, b.cx, b.cy, b.width, b.height], rtol=1e-7)
+    assert {v.name for v in col.test} == {r["colmap_name"] for r in rows if r["colmap_split_llffhold8"] == "test"}
+    assert {v.name for v in bl.test} == {r["blender_file"] for r in rows if r["blender_split"] == "test"}
+    held = (root / "colmap" / "test_images_llffhold8.txt").read_text().split()
+    assert sorted(v.name for v in col.test) == sorted(held)
+    assert col.points_xyz is not None and len(col.points_xyz) > 1000
+    # extent: 1.1 x max distance of train centres from their mean
+    c = np.stack([v.camera.center for v in col.train])
+    assert col.extent == pytest.approx(1.1 * np.linalg.norm(c - c.mean(0), axis=1).max())
+    np.testing.assert_allclose(col.center, c.mean(0))
+
+
+def test_blender_pose_by_rendering(shared_data, bright_sphere):
+    """A bright sphere at a known world point, rendered by Mitsuba from a Blender view's camera (to_mitsuba), lands
+    where Camera.project puts it; the Blender file's pose therefore matches Mitsuba's geometry of the dataset."""
+    root = need(shared_data, "mi_objects/blender")
+    ds = load_dataset(root, test_every=0)
+    for view in (ds.train[0], ds.train[57]):
+        for p in ([0.3, -0.2, 0.5], [-0.6, 0.4, 0.1]):
+            img = bright_sphere.render(view.camera, p, radius=0.04, spp=32)
+            uv, _ = view.camera.project(np.array([p]))
+            np.testing.assert_allclose(bright_sphere.centroid(img), uv[0], atol=0.5)
+
+
+def test_blender_compositing_matches_colmap_images(shared_data):
+    """mi_objects' colmap/images are the Blender RGBA images composited over white in 8-bit sRGB values: our loader
+    with background=(1, 1, 1) reproduces them to 8-bit rounding."""
+    root = need(shared_data, "mi_objects")
+    bl = load_dataset(root / "blender", background=(1.0, 1.0, 1.0))
+    col = {v.name: v for v in load_dataset(root / "colmap").views}
+    by_file = {r["blender_file"]: r["colmap_name"] for r in read_views_csv(root)}
+    for view in bl.train[:3]:
+        ours = view.load_image()
+        theirs = col[by_file[view.name]].load_image()
+        assert ours.shape == (200, 200, 3) and ours.dtype == np.float32
+        assert np.abs(ours - theirs).max() <= 1.0 / 255 + 1e-6
+        alpha = view.load_alpha()
+        assert alpha.shape == (200, 200) and 0.0 < alpha.mean() < 1.0
+
+
+def test_tiny_blender_layout_and_compositing():
+    ds = load_dataset(DATA / "tiny_blender", background=(0.2, 0.4, 0.6))
+    assert ds.layout == "blender" and ds.color_space == "srgb"
+    assert [v.name for v in ds.train] == ["train/r_0.png", "train/r_1.png"]
+    assert [v.name for v in ds.test] == ["test/r_0.png"]
+    v = ds.train[1]
+    assert (v.camera.width, v.camera.height, v.camera.cx, v.camera.cy) == (24, 16, 11.5, 7.25)
+    raw = np.asarray(Image.open(v.image_path)).astype(np.float32) / 255
+    expect = raw[..., :3] * raw[..., 3:] + np.array([0.2, 0.4, 0.6], np.float32) * (1 - raw[..., 3:])
+    np.testing.assert_allclose(v.load_image(), expect, atol=1e-6)
+    np.testing.assert_allclose(v.load_alpha(), raw[..., 3], atol=1e-7)
+    assert ds.points_xyz.shape == (100_000, 3) and np.abs(ds.points_xyz).max() <= 1.3
+    # test_every=0 merges the test views into train (the reference without --eval)
+    assert len(load_dataset(DATA / "tiny_blender", test_every=0).train) == 3
+    # seeded: same points for the same seed
+    np.testing.assert_array_equal(load_dataset(DATA / "tiny_blender", random_points=10, seed=3).points_xyz,
+                                  load_dataset(DATA / "tiny_blender", random_points=10, seed=3).points_xyz)
+
+
+def test_blender_file_path_with_extension_and_camera_angle_only(tmp_path):
+    """file_path may carry its extension; without fl_x/cx/cy/w/h the reference's camera_angle_x rule applies."""
+    root = copy_fixture("tiny_blender", tmp_path)
+    for split in ("train", "test"):
+        p = root / f"transforms_{split}.json"
+        d = json.loads(p.read_text())
+        d = {"camera_angle_x": d["camera_angle_x"],
+             "frames": [{**f, "file_path": f["file_path"] + ".png"} for f in d["frames"]]}
+        p.write_text(json.dumps(d))
+    ds = load_dataset(root)
+    cam = ds.train[0].camera
+    assert (cam.width, cam.height, cam.cx, cam.cy) == (24, 16, 12.0, 8.0)
+    assert cam.fx == pytest.approx(20.0) and cam.fy == pytest.approx(20.0)
+
+
+# ------------------------------------------------------------------------------------------------ resolution
+def test_resolution_area_average_and_scaled_camera(tmp_path):
+    full = load_dataset(DATA / "tiny_colmap", test_every=0)
+    half = load_dataset(DATA / "tiny_colmap", test_every=0, resolution=2)
+    a, b = full.train[0], half.train[0]
+    assert (b.camera.width, b.camera.height) == (12, 8)
+    assert b.camera.fx == a.camera.fx / 2 and b.camera.cx == a.camera.cx / 2 and b.camera.cy == a.camera.cy / 2
+    img = a.load_image()
+    np.testing.assert_allclose(b.load_image(), img.reshape(8, 2, 12, 2, 3).mean(axis=(1, 3)), atol=1e-6)
+    # non-integer ratio: 24x16 / 5 -> round(4.8) x round(3.2) = 5 x 3, intrinsics scaled per axis
+    c = load_dataset(DATA / "tiny_colmap", test_every=0, resolution=5).train[0].camera
+    assert (c.width, c.height) == (5, 3)
+    assert c.fx == pytest.approx(20 * 5 / 24) and c.fy == pytest.approx(20 * 3 / 16)
+
+
+def test_colmap_prefers_images_r_folder(tmp_path):
+    root = copy_fixture("tiny_colmap", tmp_path)
+    (root / "images_2").mkdir()
+    for p in (root / "images").iterdir():
+        Image.new("RGB", (12, 8), (255, 0, 0)).save(root / "images_2" / p.name)
+    v = load_dataset(root, resolution=2).train[0]
+    assert v.image_path.parent.name == "images_2"
+    np.testing.assert_array_equal(v.load_image()[..., 0], 1.0)
+    (root / "images_2" / "a.png").unlink()
+    Image.new("RGB", (10, 8)).save(root / "images_2" / "a.png")
+    with pytest.raises(ValueError, match=r"images_2/a\.png: image is 10x8"):
+        load_dataset(root, resolution=2)
+
+
+def test_area_resize_of_float_images():
+    rng = np.random.default_rng(1)
+    img = rng.random((16, 24, 4)).astype(np.float32)
+    np.testing.assert_allclose(resize_area(img, 3, 2), img.reshape(2, 8, 3, 8, 4).mean(axis=(1, 3)), atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------ undistortion
+@pytest.mark.parametrize("model, params", [
+    ("SIMPLE_RADIAL", (150.0, 77.3, 61.2, 0.15)),
+    ("RADIAL", (140.0, 80.0, 60.0, -0.1, 0.02)),
+    ("OPENCV", (150.0, 152.0, 83.1, 57.4, 0.1, -0.05, 0.002, -0.001)),
+])
+def test_undistortion_matches_pycolmap(model, params):
+    """Our float undistortion equals pycolmap.undistort_image (8-bit) up to its rounding, same camera and size."""
+    import pycolmap
+
+    rng = np.random.default_rng(0)
+    g = rng.random((12, 16, 3)).astype(np.float32)
+    img = np.stack([np.asarray(Image.fromarray(g[..., c], mode="F").resize((160, 120), Image.Resampling.BICUBIC))
+                    for c in range(3)], axis=2)
+    img8 = (np.clip(img, 0, 1) * 255).round().astype(np.uint8)
+    u = Undistorter(model, 160, 120, params)
+    ours = u.undistort(img8.astype(np.float32) / 255, u.pinhole[:2])
+    bitmap, cam = pycolmap.undistort_image(pycolmap.UndistortCameraOptions(), pycolmap.Bitmap.from_array(img8),
+                                           u.distorted)
+    assert (cam.width, cam.height) == u.pinhole[:2]
+    np.testing.assert_allclose(cam.params, u.pinhole[2:])
+    ref = bitmap.to_array().astype(np.float32) / 255
+    assert ours.shape == ref.shape
+    assert np.abs(ours - ref).max() <= 0.5 / 255 + 1e-4
+
+
+def test_tiny_ngp_distortion_camera_geometry(caplog):
+    """ngp with OpenCV distortion: the view camera is the undistorted pinhole; a 3D point projects with it to where
+    the distorted OpenCV camera (pycolmap) puts it, mapped through undistortion and the resolution scaling."""
+    import pycolmap
+
+    with caplog.at_level(logging.WARNING):
+        ds = load_dataset(DATA / "tiny_ngp", test_every=0, resolution=2)
+    assert "skipping 1 of 5 frames" in caplog.text and "images/0003.png" in caplog.text
+    assert [v.name for v in ds.train] == ["images/0000.png", "images/0001.png", "images/0002.png", "images/0004.png"]
+    meta = json.loads((DATA / "tiny_ngp" / "transforms.json").read_text())
+    dist = pycolmap.Camera(model="OPENCV", width=24, height=16,
+                           params=[meta[k] for k in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2")])
+    und = ds.train[0].loader.undistorter
+    pw, ph = und.pinhole[:2]
+    for v in ds.train:
+        cam = v.camera
+        assert (cam.width, cam.height) == (round(pw / 2), round(ph / 2))
+        pts_cam = np.array([[0.1, -0.05, 1.0], [-0.2, 0.1, 1.5], [0.0, 0.0, 2.0]])
+        pts = (cam.camera_to_world @ np.c_[pts_cam, np.ones(3)].T).T[:, :3]
+        uv_dist = dist.img_from_cam(pts_cam)
+        expect = und.undistort_points(uv_dist) * [cam.width / pw, cam.height / ph]
+        np.testing.assert_allclose(cam.project(pts)[0], expect, atol=1e-6)
+        assert v.load_image().shape == (cam.height, cam.width, 3)
+    assert ds.points_xyz.shape == (100_000, 3)
+
+
+def test_fox_ngp_reduced_resolution(shared_data, caplog):
+    root = need(shared_data, "fox")
+    with caplog.at_level(logging.WARNING):
+        ds = load_dataset(root, resolution=4)
+    assert ds.layout == "ngp"
+    assert "skipping 17 of 67 frames" in caplog.text
+    assert len(ds.train) + len(ds.test) == 50 and len(ds.test) == 7
+    names = sorted(v.name for v in ds.views)
+    assert "images/0005.jpg" not in names and names[0] == "images/0001.jpg"
+    cam = ds.train[0].camera
+    assert (cam.width, cam.height) == (267, 474)          # COLMAP's undistorted 1067 x 1897, / 4
+    assert cam.cx != cam.width / 2 and cam.cy != cam.height / 2
+    img = ds.train[0].load_image()
+    assert img.shape == (474, 267, 3) and img.dtype == np.float32 and 0.0 <= img.min() and img.max() <= 1.0
+    assert ds.points_xyz.shape == (100_000, 3)
+
+
+def test_maryrose_reduced_resolution(shared_data):
+    root = need(shared_data, "maryrose")
+    t = time.perf_counter()
+    ds = load_dataset(root, resolution=8)
+    assert time.perf_counter() - t < 5.0, "validation must read image headers only"
+    assert (len(ds.train), len(ds.test)) == (60, 9)
+    assert ds.points_xyz.shape == (62250, 3)
+    v = ds.test[0]
+    assert v.name == "IMG_9669.JPG"
+    img = v.load_image()
+    assert img.shape == (432, 432, 3) and v.camera.fx == pytest.approx(10536.036 * 432 / 3454, rel=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------ EXR
+def write_exr(path: Path, channels: dict[str, np.ndarray]) -> None:
+    """Write float32 channels. OpenEXR's Python writer ignores numpy strides: pass contiguous planes."""
+    import OpenEXR
+
+    planes = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
+    OpenEXR.File({"type": OpenEXR.scanlineimage, "compression": OpenEXR.ZIP_COMPRESSION}, planes).write(str(path))
+
+
+def test_exr_read_back_exactly(tmp_path):
+    rng = np.random.default_rng(2)
+    rgb = (rng.random((5, 7, 3)) * 4).astype(np.float32)        # HDR values above 1 are kept
+    write_exr(tmp_path / "x.exr", {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2]})
+    back = read_image(tmp_path / "x.exr")
+    assert back.dtype == np.float32
+    np.testing.assert_array_equal(back, rgb)
+
+
+def test_exr_blender_dataset_is_linear_and_premultiplied(tmp_path):
+    """EXR frames: color_space 'linear', values exact, RGBA treated as premultiplied: rgb + bg * (1 - a)."""
+    root = copy_fixture("tiny_blender", tmp_path)
+    rng = np.random.default_rng(3)
+    written = {}
+    for png in list(root.glob("*/r_*.png")):
+        a = rng.random((16, 24)).astype(np.float32)
+        rgb = (rng.random((16, 24, 3)) * a[..., None]).astype(np.float32)   # premultiplied
+        write_exr(png.with_suffix(".exr"), {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "A": a})
+        written[png.with_suffix(".exr").relative_to(root).as_posix()] = (rgb, a)
+        png.unlink()
+    ds = load_dataset(root, background=(1.0, 0.5, 0.0))
+    assert ds.color_space == "linear"
+    for v in ds.views:
+        rgb, a = written[v.name]
+        np.testing.assert_allclose(v.load_image(), rgb + np.array([1.0, 0.5, 0.0], np.float32) * (1 - a[..., None]),
+                                   atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------ errors
+def test_error_empty_and_unknown_folders(tmp_path):
+    with pytest.raises(ValueError, match=r"empty folder"):
+        load_dataset(tmp_path)
+    (tmp_path / "notes.txt").write_text("hi")
+    with pytest.raises(ValueError, match=r"unknown dataset layout"):
+        detect_layout(tmp_path)
+    with pytest.raises(ValueError, match=r"nothere: dataset folder not found"):
+        load_dataset(tmp_path / "nothere")
+
+
+def one_line(excinfo) -> str:
+    msg = str(excinfo.value)
+    assert "\n" not in msg, msg
+    return msg
+
+
+def test_error_colmap_missing_image(tmp_path):
+    root = copy_fixture("tiny_colmap", tmp_path)
+    (root / "images" / "b.png").unlink()
+    with pytest.raises(ValueError) as e:
+        load_dataset(root)
+    assert one_line(e).startswith(f"{root / 'images' / 'b.png'}: image file not found")
+
+
+def test_error_colmap_image_size(tmp_path):
+    root = copy_fixture("tiny_colmap", tmp_path)
+    Image.new("RGB", (20, 16)).save(root / "images" / "c.png")
+    with pytest.raises(ValueError) as e:
+        load_dataset(root)
+    assert one_line(e).startswith(f"{root / 'images' / 'c.png'}: image is 20x16, but ")
+
+
+def test_error_colmap_unsupported_model(tmp_path):
+    root = copy_fixture("tiny_colmap", tmp_path)
+    (root / "sparse" / "0" / "cameras.txt").write_text("1 OPENCV_FISHEYE 24 16 20 20 11.5 7.25 0.1 0 0 0\n")
+    with pytest.raises(ValueError) as e:
+        load_dataset(root)
+    assert one_line(e).startswith(f"{root / 'sparse' / '0' / 'cameras.txt'}: unsupported COLMAP camera model "
+                                  "OPENCV_FISHEYE")
+
+
+def test_error_colmap_malformed_model(tmp_path):
+    root = copy_fixture("tiny_colmap", tmp_path)
+    (root / "sparse" / "0" / "cameras.txt").write_text("1 PINHOLE 24 16 20\n")
+    with pytest.raises(ValueError) as e:
+        load_dataset(root)
+    assert one_line(e).startswith(f"{root / 'sparse' / '0'}: cannot read the COLMAP model")
+    (root / "sparse" / "0" / "points3D.txt").unlink()
+    with pytest.raises(ValueError, match=r"incomplete COLMAP model, missing points3D\.txt"):
+        load_dataset(root)
+
+
+def test_error_blender_malformed_json(tmp_path):
+    root = copy_fixture("tiny_blender", tmp_path)
+    p = root / "transforms_train.json"
+    p.write_text(p.read_text()[:-10])
+    with pytest.raises(ValueError) as e:
+        load_dataset(root)
+    assert one_line(e).startswith(f"{p}: malformed JSON")
+
+
+def test_error_blender_missing_image_and_size(tmp_path):
+    root = copy_fixture("tiny_blender", tmp_path)
+    (root / "test" / "r_0.png").unlink()
+    with pytest.raises(ValueError) as e:
+        load_dataset(root)
+    assert one_line(e).startswith(f"{root / 'test' / 'r_0.png'}: image file not found")
+    Image.new("RGBA", (24, 17)).save(root / "test" / "r_0.png")
+    with pytest.raises(ValueError) as e:
+        load_dataset(root)
+    assert one_line(e).startswith(f"{root / 'test' / 'r_0.png'}: image is 24x17, but {root / 'transforms_test.json'}")
+
+
+def test_error_blender_nan_pose_and_missing_fields(tmp_path):
+    root = copy_fixture("tiny_blender", tmp_path)
+    p = root / "transforms_train.json"
+    d = json.loads(p.read_text())
+    d["frames"][1]["transform_matrix"][0][3] = float("nan")
+    p.write_text(json.dumps(d))               # json.dumps writes NaN, which json.load accepts
+    with pytest.raises(ValueError) as e:
+        load_dataset(root)
+    assert one_line(e) == f"{p}: frame 1 (./train/r_1): transform_matrix has non-finite entries (NaN/inf)"
+    d["frames"][1]["transform_matrix"] = (np.diag([2.0, 2.0, 2.0, 1.0])).tolist()
+    p.write_text(json.dumps(d))
+    with pytest.raises(ValueError, match=r"frame 1 \(\./train/r_1\): transform_matrix is not a rigid"):
+        load_dataset(root)
+    d["frames"][1]["transform_matrix"] = [[1, 0, 0], [0, 1, 0]]
+    p.write_text(json.dumps(d))
+    with pytest.raises(ValueError, match=r"frame 1 \(\./train/r_1\): transform_matrix must be 4x4"):
+        load_dataset(root)
+    p.write_text(json.dumps({"frames": []}))
+    with pytest.raises(ValueError, match=r"transforms_train\.json: no 'frames' list"):
+        load_dataset(root)
+    d = json.loads((root / "transforms_test.json").read_text())
+    for k in ("camera_angle_x", "fl_x"):
+        d.pop(k)
+    p.write_text(json.dumps(d))
+    with pytest.raises(ValueError, match=r"transforms_train\.json: frame 0 \(\./test/r_0\): no focal length"):
+        load_dataset(root)
+
+
+def test_error_ngp_fisheye_and_all_missing(tmp_path):
+    root = copy_fixture("tiny_ngp", tmp_path)
+    p = root / "transforms.json"
+    d = json.loads(p.read_text())
+    p.write_text(json.dumps({**d, "camera_model": "OPENCV_FISHEYE"}))
+    with pytest.raises(ValueError, match=r"transforms\.json: frame 0 \(images/0000\.png\): unsupported camera model"):
+        load_dataset(root)
+    p.write_text(json.dumps(d))
+    shutil.rmtree(root / "images")
+    with pytest.raises(ValueError, match=r"transforms\.json: none of the 5 frames has its image file"):
+        load_dataset(root)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(resolution=0), "resolution must be a positive integer"),
+    (dict(resolution=1.5), "resolution must be a positive integer"),
+    (dict(test_every=-1), "test_every must be an integer >= 0"),
+    (dict(background=(1, 1)), "background must be three numbers"),
+])
+def test_error_options(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        load_dataset(DATA / "tiny_colmap", **kwargs)
+
+
+def test_loading_writes_nothing(tmp_path):
+    root = copy_fixture("tiny_colmap", tmp_path)
+    before = sorted(p.relative_to(root) for p in root.rglob("*"))
+    ds = load_dataset(root, resolution=2)
+    for v in ds.views:
+        v.load_image()
+    assert sorted(p.relative_to(root) for p in root.rglob("*")) == before
+
+
+def test_colmap_without_points_gets_random_points(tmp_path, caplog):
+    root = copy_fixture("tiny_colmap", tmp_path)
+    model = root / "sparse" / "0"
+    lines = (model / "images.txt").read_text().splitlines()
+    header = [l for l in lines if l.startswith("#")]
+    body = [l for l in lines if not l.startswith("#")]
+    (model / "images.txt").write_text("\n".join(header + [x for pose in body[0::2] for x in (pose, "")]) + "\n")
+    (model / "points3D.txt").write_text("# no points\n")
+    with caplog.at_level(logging.WARNING):
+        ds = load_dataset(root, random_points=500)
+    assert "has no 3D points" in caplog.text
+    assert ds.points_xyz.shape == (500, 3) and ds.points_rgb.shape == (500, 3)
+
+
+def test_dataset_pickles(tmp_path):
+    """Views (with their undistorters) survive pickling, e.g. to worker processes."""
+    import pickle
+
+    ds = load_dataset(DATA / "tiny_ngp")
+    ds.train[0].load_image()                        # fills the grid cache, which is not pickled
+    back = pickle.loads(pickle.dumps(ds))
+    np.testing.assert_array_equal(back.train[0].load_image(), ds.train[0].load_image())
+    assert back.extent == ds.extent
