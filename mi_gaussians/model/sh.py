@@ -103,10 +103,14 @@ def gather_sh_coeffs(sh_dc: "mi.TensorXf", sh_rest: "mi.TensorXf", degree: int, 
     n = int(sh_dc.shape[0])
     k_rest = int(sh_rest.shape[1]) if len(sh_rest.shape) == 3 else 0
     degree = _check_degree(degree, k_rest)
+    # With the default (all Gaussians once each) no index repeats: NoConflicts makes the reverse-mode
+    # scatter-adds non-atomic.
+    mode = dr.ReduceMode.NoConflicts if index is None else dr.ReduceMode.Auto
     if index is None:
         index = dr.arange(mi.UInt32, n)
-    dc = dr.gather(mi.Vector3f, sh_dc.array, index)
-    rest = [dr.gather(mi.Vector3f, sh_rest.array, index * k_rest + j) for j in range(num_sh_coeffs(degree) - 1)]
+    dc = dr.gather(mi.Vector3f, sh_dc.array, index, mode=mode)
+    rest = [dr.gather(mi.Vector3f, sh_rest.array, index * k_rest + j, mode=mode)
+            for j in range(num_sh_coeffs(degree) - 1)]
     return dc, rest
 
 

@@ -108,10 +108,13 @@ class GaussianArrays:
 
     @classmethod
     def from_gaussians(cls, g: Gaussians, sh_degree: int) -> "GaussianArrays":
+        # Every index is read once: NoConflicts makes the reverse-mode scatter-adds non-atomic.
         dc, rest = gather_sh_coeffs(g.sh_dc, g.sh_rest, sh_degree)
-        return cls(means=dr.unravel(mi.Point3f, g.means.array),
-                   sigmas=dr.exp(dr.unravel(mi.Vector3f, g.scales.array)),
-                   quats=dr.unravel(mi.Vector4f, g.rotations.array),
+        idx = dr.arange(mi.UInt32, g.n)
+        perm = dr.ReduceMode.NoConflicts
+        return cls(means=dr.gather(mi.Point3f, g.means.array, idx, mode=perm),
+                   sigmas=dr.exp(dr.gather(mi.Vector3f, g.scales.array, idx, mode=perm)),
+                   quats=dr.gather(mi.Vector4f, g.rotations.array, idx, mode=perm),
                    opacity=dr.rcp(1.0 + dr.exp(-g.opacities.array)),
                    sh_dc=dc, sh_rest=rest, sh_degree=sh_degree)
 
