@@ -35,8 +35,47 @@ class ConvertConfig:
 class RasterConfig:
     tile_size: int = 16
     near_plane: float = 0.2                  # cull Gaussians with view-space z <= near_plane
-    guard_band: float = 1.3                  # the Jacobian clamps the projected mean to guard_band * tan(half fov)
+    guard_band: float = 1.3                  # the Jacobian clamps the projected mean to this many half image sizes
+                                             # around the image centre (the reference's 1.3 tan(half fov))
     dilation: float = 0.3                    # low-pass filter added to the diagonal of the 2D covariance
     alpha_min: float = 1.0 / 255.0           # skip a Gaussian whose alpha is below this
     alpha_max: float = 0.99                  # clamp alpha
     transmittance_min: float = 1e-4          # stop before a Gaussian that would bring T below this
+
+
+@dataclass(frozen=True)
+class OptimConfig:
+    """Adam and the loss (3DGS defaults, 30k iterations)."""
+
+    iterations: int = 30_000
+    position_lr_init: float = 1.6e-4         # times the scene extent
+    position_lr_final: float = 1.6e-6        # times the scene extent
+    position_lr_delay_mult: float = 0.01
+    position_lr_max_steps: int = 30_000
+    feature_lr: float = 2.5e-3               # SH DC; the higher bands use feature_lr / 20
+    opacity_lr: float = 0.05                 # the paper's value (the 2024 revision of the reference code uses 0.025)
+    scaling_lr: float = 5e-3
+    rotation_lr: float = 1e-3
+    adam_eps: float = 1e-15
+    lambda_dssim: float = 0.2                # loss = (1 - lambda) L1 + lambda (1 - SSIM)
+    sh_degree: int = 3                       # maximum SH degree
+    sh_increase_interval: int = 1000         # the active degree goes up by one every this many iterations
+    random_background: bool = False          # a random background colour per iteration
+
+
+@dataclass(frozen=True)
+class DensifyConfig:
+    """Adaptive density control (reference behaviour; see conventions.md)."""
+
+    densify_from_iter: int = 500
+    densify_until_iter: int = 15_000
+    densification_interval: int = 100
+    opacity_reset_interval: int = 3000
+    grad_threshold: float = 2e-4             # mean NDC-space norm of dL/d(projected mean)
+    percent_dense: float = 0.01              # clone when max scale <= percent_dense * extent, else split
+    split_count: int = 2                     # a split Gaussian becomes this many
+    split_scale_divisor: float = 1.6         # (0.8 * split_count) in the reference
+    min_opacity: float = 0.005               # prune below this opacity
+    max_screen_size: float = 20.0            # after the first opacity reset, prune max 2D radius above this (px)
+    max_world_scale: float = 0.1             # ... or max world scale above this times the extent
+    reset_opacity: float = 0.01              # opacity reset: opacity = min(opacity, reset_opacity)

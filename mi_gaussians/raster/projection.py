@@ -130,10 +130,11 @@ def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig) -> Projecte
     inv_z = dr.rcp(dr.select(in_front, tz, 1.0))
 
     # Jacobian with the guard band (clamped normalized coordinates; see the module docstring)
-    lim_x0 = (-0.15 * view.width_f - view.cx) / view.fx
-    lim_x1 = (1.15 * view.width_f - view.cx) / view.fx
-    lim_y0 = (-0.15 * view.height_f - view.cy) / view.fy
-    lim_y1 = (1.15 * view.height_f - view.cy) / view.fy
+    band = 0.5 * (cfg.guard_band - 1.0)   # 0.15: the reference's 1.3 tan(fov / 2) band, as a fraction of the size
+    lim_x0 = (-band * view.width_f - view.cx) / view.fx
+    lim_x1 = ((1.0 + band) * view.width_f - view.cx) / view.fx
+    lim_y0 = (-band * view.height_f - view.cy) / view.fy
+    lim_y1 = ((1.0 + band) * view.height_f - view.cy) / view.fy
     u = fclamp(tcam.x * inv_z, lim_x0, lim_x1)
     v = fclamp(tcam.y * inv_z, lim_y0, lim_y1)
     j00 = view.fx * inv_z
