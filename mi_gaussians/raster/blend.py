@@ -32,7 +32,7 @@ from .mathops import fmin
 PIXELS_PER_LANE = 4
 TILE = 16
 LANES_PER_TILE = TILE * TILE // PIXELS_PER_LANE    # 64
-GEO = 8      # packed per-Gaussian geometry: mx, my, conic a, b, c, opacity, depth, (pad)
+GEO = 8      # packed per-Gaussian geometry: mx, my, -a/2, -b, -c/2 (conic), opacity, depth, (pad)
 COL = 4      # packed per-Gaussian colour: r, g, b, (pad)
 
 
@@ -82,6 +82,11 @@ def _pack(values: list, stride: int) -> "mi.Float":
     return buf
 
 
+def _pack_geometry(mean2d, conic, opacity, depth) -> "mi.Float":
+    """[mx, my, -a/2, -b, -c/2, opacity, depth, 0] per Gaussian, so that power = qa dx^2 + qb dx dy + qc dy^2."""
+    return _pack([mean2d.x, mean2d.y, -0.5 * conic.x, -conic.y, -0.5 * conic.z, opacity, depth], GEO)
+
+
 def _lane_pixels(frame: Frame, n_lanes: int):
     """Tile, pixel coordinates (centres) and validity of the 4 pixels of every lane."""
     lane = dr.arange(mi.UInt32, n_lanes)
@@ -117,14 +122,16 @@ def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cf
     def body(i, act, T, C, D, last):
         g = dr.gather(mi.UInt32, inst, i)
         f = dr.gather(_array_types()[0], geo, g, shape=(GEO, n_lanes))
-        mx, my, ca, cb, cc, op, z = f[0], f[1], f[2], f[3], f[4], f[5], f[6]
+        mx, my, qa, qb, qc, op, z = f[0], f[1], f[2], f[3], f[4], f[5], f[6]
         dx = mx - px
+        ax2 = qa * dx * dx            # shared by the lane's 4 pixels (same column)
+        bx = qb * dx
         act, T, C, D, last = list(act), list(T), list(C), list(D), list(last)
         hit = []
         alphas = []
         for k in range(P):
             dy = my - pys[k]
-            power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+            power = dr.fma(dy, dr.fma(qc, dy, bx), ax2)
             alpha = fmin(op * dr.exp(power), alpha_max)
             h = act[k] & (alpha >= alpha_min) & (power <= 0)
             test_T = T[k] * (1.0 - alpha)
@@ -193,13 +200,16 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
         i = i - 1
         g = dr.gather(mi.UInt32, inst, i)
         f = dr.gather(ArrayXf, geo, g, shape=(GEO, n_lanes))
-        mx, my, ca, cb, cc, op, z = f[0], f[1], f[2], f[3], f[4], f[5], f[6]
+        mx, my, qa, qb, qc, op, z = f[0], f[1], f[2], f[3], f[4], f[5], f[6]
+        ca, cb, cc = -2.0 * qa, -qb, -2.0 * qc       # the conic (a, b, c)
         dx = mx - px
+        ax2 = qa * dx * dx
+        bx = qb * dx
         T, acc = list(T), list(acc)
         hit, alphas, dys, Gs, unclamped = [], [], [], [], []
         for k in range(P):
             dy = my - pys[k]
-            power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+            power = dr.fma(dy, dr.fma(qc, dy, bx), ax2)   # bit-identical to the forward pass
             G = dr.exp(power)
             raw = op * G
             alpha = fmin(raw, alpha_max)
@@ -256,7 +266,7 @@ class BlendOp(dr.CustomOp):
     def eval(self, mean2d, conic, opacity, color, depth, bins, frame, cfg, stats):
         self.bins, self.frame, self.cfg, self.stats = bins, frame, cfg, stats
         self.n = dr.width(opacity)
-        self.geo = _pack([mean2d.x, mean2d.y, conic.x, conic.y, conic.z, opacity, depth], GEO)
+        self.geo = _pack_geometry(mean2d, conic, opacity, depth)
         self.col = _pack([color.x, color.y, color.z], COL)
         img, self.T_lane, self.last_lane, stats.forward_evaluations = blend_forward(self.geo, self.col, bins,
                                                                                     frame, cfg)
@@ -297,7 +307,7 @@ def blend(mean2d, conic, opacity, color, depth, bins: Bins, frame: Frame, cfg: R
     stats = BlendStats() if stats is None else stats
     if dr.grad_enabled(mean2d, conic, opacity, color, depth):
         return dr.custom(BlendOp, mean2d, conic, opacity, color, depth, bins, frame, cfg, stats)
-    geo = _pack([mean2d.x, mean2d.y, conic.x, conic.y, conic.z, opacity, depth], GEO)
+    geo = _pack_geometry(mean2d, conic, opacity, depth)
     col = _pack([color.x, color.y, color.z], COL)
     img, _, _, stats.forward_evaluations = blend_forward(geo, col, bins, frame, cfg)
     return tuple(img)
