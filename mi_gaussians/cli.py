@@ -160,6 +160,101 @@ def cmd_render(args) -> int:
     return 0
 
 
+# -------------------------------------------------------------------------------------------------- optimize
+def _train_config(args):
+    import dataclasses
+
+    from .config import DataConfig, DensifyConfig, OptimConfig, TrainConfig
+
+    d, o, dn = DataConfig(), OptimConfig(), DensifyConfig()
+    data = dataclasses.replace(d, resolution=args.resolution, background=_background(args.background)
+                               if args.background is not None else (1.0, 1.0, 1.0) if args.white_background
+                               else d.background, test_every=args.test_every, seed=args.seed,
+                               random_points=args.random_points if args.random_points is not None
+                               else d.random_points)
+    opt_kw = {"random_background": args.random_background}
+    if args.iterations is not None:
+        opt_kw["iterations"] = args.iterations
+        opt_kw["position_lr_max_steps"] = args.iterations
+    if args.sh_degree is not None:
+        opt_kw["sh_degree"] = args.sh_degree
+    optim = dataclasses.replace(o, **opt_kw)
+    dens_kw = {}
+    if args.iterations is not None and args.iterations < o.iterations:
+        # a shorter schedule keeps the paper's proportions (densify until half the run)
+        dens_kw["densify_until_iter"] = min(dn.densify_until_iter, args.iterations // 2)
+    densify = dataclasses.replace(dn, **dens_kw)
+    save = tuple(i for i in TrainConfig().save_iterations if i < optim.iterations)
+    return TrainConfig(data=data, optim=optim, densify=densify, seed=args.seed,
+                       checkpoint_every=args.checkpoint_every, eval_every=args.eval_every, save_iterations=save)
+
+
+def cmd_optimize(args) -> int:
+    from .config import TrainConfig
+    from .data.dataset import load_dataset
+    from .optim.trainer import Trainer, TrainingDiverged
+
+    out = Path(args.output)
+    src = Path(args.scene)
+    if not src.exists():
+        raise InputError(f"{src}: not found")
+    if args.resume:
+        cfg_path = out / "config.json"
+        if not cfg_path.exists():
+            raise InputError(f"{cfg_path}: nothing to resume (no config.json in the output folder)")
+        saved = json.loads(cfg_path.read_text())
+        cfg = TrainConfig.from_dict(saved["train"])
+    else:
+        if (out / "checkpoints").exists() and any((out / "checkpoints").iterdir()):
+            raise InputError(f"{out}: holds an earlier run (use --resume to continue it, or another folder)")
+        cfg = _train_config(args)
+    d = cfg.data
+    ds = load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
+                      random_points=d.random_points, seed=d.seed)
+    trainer = Trainer(ds, cfg, out, progress=not args.quiet)
+    try:
+        metrics = trainer.run(resume=args.resume)
+    except TrainingDiverged as e:
+        print(f"mi-gs: error: {e}", file=sys.stderr)
+        return 3
+    print(json.dumps({"output": str(out), **metrics["mean"], "gaussians": metrics["gaussians"],
+                      "training_seconds": metrics["training_seconds"]}, indent=2))
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------------ eval
+def cmd_eval(args) -> int:
+    from .config import TrainConfig
+    from .data.dataset import load_dataset
+    from .evaluate import evaluate_views, summarize
+    from .model.gaussians import Gaussians
+    from .report import write_json
+
+    out = Path(args.run)
+    cfg_path, ply = out / "config.json", out / "point_cloud.ply"
+    for p in (cfg_path, ply):
+        if not p.exists():
+            raise InputError(f"{p}: missing (is {out} an mi-gs optimize output folder?)")
+    saved = json.loads(cfg_path.read_text())
+    cfg = TrainConfig.from_dict(saved["train"])
+    d = cfg.data
+    ds = load_dataset(args.dataset or saved["dataset"], resolution=d.resolution, background=d.background,
+                      test_every=d.test_every, random_points=0)
+    views = ds.test if ds.test else ds.train
+    g = Gaussians.load_ply(ply)
+    scores, note = evaluate_views(g, views, tuple(ds.background), cfg=cfg.raster)
+    result = {"split": "test" if ds.test else "train", "mean": summarize(scores),
+              "views": {s.name: {"psnr": s.psnr, "ssim": s.ssim, **({"lpips": s.lpips} if s.lpips is not None
+                                                                  else {})} for s in scores},
+              "gaussians": g.n}
+    if note:
+        result["lpips_note"] = note
+    write_json(out / "eval.json", result)
+    print(json.dumps({"output": str(out / "eval.json"), **result["mean"], "gaussians": g.n,
+                      **({"lpips_note": note} if note else {})}, indent=2))
+    return 0
+
+
 # --------------------------------------------------------------------------------------------------- convert
 def cmd_convert(args) -> int:
     from .data.convert import convert
@@ -199,6 +294,30 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--spp", type=int, default=None, help="samples per pixel (scene .xml only)")
     s.add_argument("--sensor", type=int, default=0, help="sensor index (scene .xml only)")
     s.set_defaults(func=cmd_render)
+
+    s = sub.add_parser("optimize", help="fit Gaussians to a COLMAP / Blender / instant-ngp scene folder")
+    s.add_argument("scene", help="scene folder")
+    s.add_argument("-o", "--output", required=True, help="output folder")
+    s.add_argument("--iterations", type=int, default=None, help="default 30000 (the paper's)")
+    s.add_argument("-r", "--resolution", type=int, default=1, help="divide the image size by this")
+    s.add_argument("--white-background", action="store_true", help="composite RGBA images over white")
+    s.add_argument("--background", type=float, nargs="+", default=None, help="background colour (1 or 3 values)")
+    s.add_argument("--random-background", action="store_true", help="random background colour per iteration")
+    s.add_argument("--sh-degree", type=int, default=None, help="maximum SH degree (default 3)")
+    s.add_argument("--test-every", type=int, default=8, help="hold out every N-th image (COLMAP/ngp; 0: none)")
+    s.add_argument("--random-points", type=int, default=None,
+                   help="initial random points for layouts without SfM points (default 100000)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--checkpoint-every", type=int, default=1000)
+    s.add_argument("--eval-every", type=int, default=1000, help="test PSNR for the curves every N iterations")
+    s.add_argument("--resume", action="store_true", help="continue the run saved in the output folder")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=cmd_optimize)
+
+    s = sub.add_parser("eval", help="recompute the metrics of a saved run on its test views")
+    s.add_argument("run", help="an mi-gs optimize output folder")
+    s.add_argument("--dataset", default=None, help="dataset folder (default: the one the run was trained on)")
+    s.set_defaults(func=cmd_eval)
 
     s = sub.add_parser("convert", help="structure-from-motion with pycolmap: images folder -> COLMAP scene")
     s.add_argument("images", help="folder of input images")

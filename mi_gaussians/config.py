@@ -79,3 +79,44 @@ class DensifyConfig:
     max_screen_size: float = 20.0            # after the first opacity reset, prune max 2D radius above this (px)
     max_world_scale: float = 0.1             # ... or max world scale above this times the extent
     reset_opacity: float = 0.01              # opacity reset: opacity = min(opacity, reset_opacity)
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything a training run needs; saved with its outputs (``config.json``) and read back by ``--resume``."""
+
+    data: DataConfig = DataConfig()
+    optim: OptimConfig = OptimConfig()
+    densify: DensifyConfig = DensifyConfig()
+    raster: RasterConfig = RasterConfig()
+    seed: int = 0
+    checkpoint_every: int = 1000             # iterations between checkpoints (and the last iteration)
+    eval_every: int = 1000                   # iterations between test-set evaluations for the curves (0: only at the end)
+    save_iterations: tuple[int, ...] = (7_000, 30_000)   # also write point_cloud_<iter>.ply at these iterations
+
+    def to_dict(self) -> dict:
+        import dataclasses
+
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        import dataclasses
+
+        def build(kind, values):
+            names = {f.name: f for f in dataclasses.fields(kind)}
+            unknown = set(values) - set(names)
+            if unknown:
+                raise ValueError(f"unknown {kind.__name__} setting(s): {', '.join(sorted(unknown))}")
+            kw = {}
+            for k, v in values.items():
+                default = getattr(kind(), k)
+                if dataclasses.is_dataclass(default):
+                    kw[k] = build(type(default), v)
+                elif isinstance(default, tuple):
+                    kw[k] = tuple(v)
+                else:
+                    kw[k] = v
+            return kind(**kw)
+
+        return build(cls, d)

@@ -1,0 +1,103 @@
+"""Training benchmark: test PSNR / SSIM / Gaussians / minutes at milestones, and seconds per iteration against the
+number of Gaussians (to read off the comparison with OpenSplat's CPU build).
+
+    python benchmarks/train.py mi_objects_blender mi_objects_colmap --milestones 7000 30000
+    python benchmarks/train.py fox maryrose --milestones 7000
+    python benchmarks/train.py mi_objects_colmap --milestones 2000      # the OpenSplat comparison point
+
+Datasets are read from ../shared/data (next to the repository). Outputs go to --out (default /tmp/mi_gs_bench).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = (ROOT / ".." / "shared" / "data").resolve()
+
+# name -> (folder, resolution divisor, background, what to say about it)
+DATASETS = {
+    "mi_objects_blender": ("mi_objects/blender", 1, (1.0, 1.0, 1.0), "200x200, white background"),
+    "mi_objects_colmap": ("mi_objects/colmap", 1, (0.0, 0.0, 0.0), "200x200, SfM points"),
+    "mi_room_colmap": ("mi_room/colmap", 1, (0.0, 0.0, 0.0), "256x256, SfM points"),
+    "fox": ("fox", 4, (0.0, 0.0, 0.0), "-r 4: 267x474 after undistortion, random init"),
+    "maryrose": ("maryrose", 8, (1.0, 1.0, 1.0), "-r 8: 432x432 after undistortion, SfM points"),
+}
+
+
+def run_one(name: str, milestones: list[int], out_root: Path, variant: str) -> list[dict]:
+    import mitsuba as mi
+
+    mi.set_variant(variant)
+    import mi_gaussians as mig
+    from mi_gaussians.config import DataConfig, DensifyConfig, OptimConfig, TrainConfig
+    from mi_gaussians.evaluate import evaluate_views, summarize
+    from mi_gaussians.optim.trainer import Trainer
+
+    folder, res, bg, note = DATASETS[name]
+    path = DATA / folder
+    if not path.exists():
+        print(f"{name}: {path} missing, skipped", file=sys.stderr)
+        return []
+    iters = max(milestones)
+    cfg = TrainConfig(data=DataConfig(resolution=res, background=bg),
+                      optim=OptimConfig(iterations=iters),
+                      densify=DensifyConfig(densify_until_iter=min(15_000, iters // 2) if iters < 30_000 else 15_000),
+                      checkpoint_every=1000, eval_every=1000, save_iterations=tuple(milestones))
+    ds = mig.load_dataset(path, resolution=res, background=bg)
+    out = out_root / name
+    tr = Trainer(ds, cfg, out, progress=True)
+    tr.run(resume=(out / "checkpoints" / "ckpt.npz").exists())
+    h = tr.history
+    rows = []
+    for m in milestones:
+        ply = out / ("point_cloud.ply" if m == iters else f"point_cloud_{m}.ply")
+        g = mig.Gaussians.load_ply(ply)
+        scores, _ = evaluate_views(g, ds.test, tuple(ds.background), with_lpips=False)
+        s = summarize(scores)
+        k = h.iteration.index(m)
+        # seconds per iteration around the milestone (the last 200 iterations before it)
+        k0 = max(0, k - 200)
+        spi = (h.seconds[k] - h.seconds[k0]) / max(1, k - k0)
+        rows.append({"dataset": name, "note": note, "iterations": m, "psnr": s["psnr"], "ssim": s["ssim"],
+                     "gaussians": g.n, "minutes": h.seconds[k] / 60.0, "sec_per_iter": spi})
+    # seconds per iteration against the number of Gaussians (binned)
+    n = np.asarray(h.gaussians)
+    t = np.diff(np.asarray([0.0] + h.seconds))
+    print(f"\n{name}: seconds per iteration vs Gaussians")
+    print("| Gaussians | s / iteration |\n|---:|---:|")
+    edges = np.unique(np.quantile(n, np.linspace(0, 1, 9)).astype(int))
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (n >= lo) & (n <= hi)
+        if sel.sum() > 20:
+            print(f"| {int(np.median(n[sel])):,} | {np.median(t[sel]):.3f} |")
+    (out / "bench.json").write_text(json.dumps(rows, indent=2))
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("datasets", nargs="+", choices=sorted(DATASETS))
+    ap.add_argument("--milestones", type=int, nargs="+", default=[7000, 30000])
+    ap.add_argument("--out", default="/tmp/mi_gs_bench")
+    ap.add_argument("--variant", default="llvm_ad_rgb")
+    args = ap.parse_args(argv)
+    rows = []
+    for name in args.datasets:
+        rows += run_one(name, sorted(args.milestones), Path(args.out), args.variant)
+    print("\n| dataset | iterations | test PSNR | test SSIM | Gaussians | minutes | s / it (at milestone) |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        print(f"| {r['dataset']} ({r['note']}) | {r['iterations']:,} | {r['psnr']:.2f} | {r['ssim']:.4f} "
+              f"| {r['gaussians']:,} | {r['minutes']:.1f} | {r['sec_per_iter']:.3f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,345 @@
+"""Adaptive density control (mi_gaussians.optim.densify.DefaultStrategy) on crafted scenes.
+
+The render output is faked (``radii`` and ``means2d_grad`` set by hand) so that every rule is hit on purpose:
+NDC scaling of the pixel gradient, visibility-gated statistics, clone / split / prune counts, exact copies, split
+sampling statistics, the opacity reset, screen/world-size pruning only after the first reset, and the Adam state
+carried through every change. One test drives the strategy with the real rasterizer.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from mi_gaussians.config import DensifyConfig, OptimConfig
+from mi_gaussians.model.gaussians import Gaussians
+from mi_gaussians.optim import optimizer as O
+from mi_gaussians.optim.densify import DefaultStrategy, DensifyState
+
+EXTENT = 2.0           # clone/split boundary: 0.01 * 2 = 0.02; world-size prune: 0.1 * 2 = 0.2
+W = H = 100            # NDC factor 50: pixel gradient 1e-5 -> 5e-4 (dense), 1e-6 -> 5e-5 (not)
+HIGH, LOW = 1e-5, 1e-6
+
+
+@dataclasses.dataclass
+class FakeOut:
+    radii: "mi.Int32"
+    means2d_grad: "mi.Vector2f"
+
+
+def fake_out(radii, gx, gy=None) -> FakeOut:
+    gx = np.asarray(gx, np.float32)
+    gy = np.zeros_like(gx) if gy is None else np.asarray(gy, np.float32)
+    return FakeOut(mi.Int32(np.asarray(radii, np.int32)), mi.Vector2f(mi.Float(gx), mi.Float(gy)))
+
+
+def logit(p):
+    return math.log(p / (1.0 - p))
+
+
+def quat_to_matrix(q):
+    w, x, y, z = np.asarray(q, np.float64) / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def build(rows, seed=0):
+    """Gaussians from a list of dicts (sigma: scalar or 3-vector, opacity, optional quat); degree 1 SH. Returns
+    (g, opt) with nonzero Adam moments (t = 5) installed on every parameter."""
+    rng = np.random.default_rng(seed)
+    n = len(rows)
+    sig = np.array([np.broadcast_to(np.asarray(r["sigma"], np.float64), 3) for r in rows])
+    quats = np.array([r.get("quat", rng.normal(size=4)) for r in rows])
+    g = Gaussians.from_numpy(rng.normal(size=(n, 3)), np.log(sig), quats,
+                             np.array([logit(r["opacity"]) for r in rows]), rng.normal(size=(n, 3)),
+                             rng.normal(size=(n, 3, 3)))
+    opt = O.make_optimizer(g, OptimConfig(), EXTENT)
+    state = {}
+    for key in O.PARAM_KEYS:
+        shape = tuple(opt[key].shape)
+        state[f"{key}.t"] = np.array([5], np.uint32)
+        state[f"{key}.m"] = rng.normal(size=shape).astype(np.float32)
+        state[f"{key}.v"] = rng.uniform(0.1, 1.0, size=shape).astype(np.float32)
+    O.import_state(opt, state)
+    O.sync_gaussians(opt, g)
+    return g, opt
+
+
+def snapshot(opt) -> dict:
+    out = {}
+    for key in O.PARAM_KEYS:
+        t, m, v = O.moments(opt, key)
+        out[key] = dict(value=np.array(opt[key]).reshape(tuple(opt[key].shape)), m=m, v=v, t=t)
+    return out
+
+
+# The crafted scene: (row, pixel gradient x, radius)
+SCENE = [
+    (dict(sigma=0.01, opacity=0.5), HIGH, 5),                                  # 0 clone
+    (dict(sigma=(0.05, 0.03, 0.04), opacity=0.6), HIGH, 8),                    # 1 split
+    (dict(sigma=0.01, opacity=0.5), LOW, 5),                                   # 2 untouched
+    (dict(sigma=0.01, opacity=0.001), LOW, 3),                                 # 3 pruned (opacity)
+    (dict(sigma=0.01, opacity=0.5), 1e-3, 0),                                  # 4 invisible: its gradient is ignored
+    (dict(sigma=0.3, opacity=0.5), LOW, 10),                                   # 5 world-huge (pruned after 3000)
+    (dict(sigma=0.01, opacity=0.5), LOW, 30),                                  # 6 screen-huge (pruned after 3000)
+    (dict(sigma=0.01, opacity=0.003), HIGH, 5),                                # 7 cloned, then it and its clone pruned
+]
+
+
+def crafted():
+    g, opt = build([r for r, _, _ in SCENE])
+    out = fake_out([r for _, _, r in SCENE], [gx for _, gx, _ in SCENE])
+    return g, opt, out
+
+
+# ---------------------------------------------------------------------------------------------- statistics
+def test_statistics_ndc_scaling_visibility_and_max_radii():
+    g, opt = build([dict(sigma=0.01, opacity=0.5)] * 3)
+    s = DefaultStrategy(DensifyConfig(), EXTENT)
+    assert s.step_pre_backward() is None
+    info = s.step_post_backward(10, g, opt, fake_out([4, 0, 7], [3e-6, 1.0, -1e-6], [4e-6, 1.0, 2e-6]), 200, 100)
+    assert not info["changed"] and info["n"] == 3
+    st = s.state.numpy()
+    # (gx * W/2, gy * H/2) = (3e-4, 2e-4) for W = 200, H = 100
+    np.testing.assert_allclose(st["grad_accum"], [math.hypot(3e-4, 2e-4), 0.0, math.hypot(1e-4, 1e-4)], rtol=1e-6)
+    np.testing.assert_array_equal(st["denom"], [1, 0, 1])
+    np.testing.assert_array_equal(st["max_radii"], [4, 0, 7])
+    s.step_post_backward(11, g, opt, fake_out([2, 9, 8], [0.0, 0.0, 0.0]), 200, 100)
+    st = s.state.numpy()
+    np.testing.assert_array_equal(st["denom"], [2, 1, 2])
+    np.testing.assert_array_equal(st["max_radii"], [4, 9, 8])
+
+
+def test_mean_gradient_counts_only_visible_iterations():
+    """Two visible iterations at 2.5e-4 (NDC) and one invisible one: mean 2.5e-4 >= 2e-4 -> clone (had the
+    invisible iteration counted, the mean would be 1.67e-4 and nothing would happen)."""
+    g, opt = build([dict(sigma=0.01, opacity=0.5), dict(sigma=0.01, opacity=0.5)])
+    s = DefaultStrategy(DensifyConfig(), EXTENT)
+    px = 2.5e-4 / (W / 2)
+    s.step_post_backward(598, g, opt, fake_out([3, 3], [px, px / 2]), W, H)
+    s.step_post_backward(599, g, opt, fake_out([0, 3], [0.0, px / 2]), W, H)
+    info = s.step_post_backward(600, g, opt, fake_out([3, 3], [px, px / 2]), W, H)
+    assert (info["cloned"], info["split"], info["pruned"]) == (1, 0, 0) and g.n == 3
+
+
+# ---------------------------------------------------------------------------------------------- densify and prune
+def test_clone_split_prune_counts_values_and_moments():
+    g, opt, out = crafted()
+    before = snapshot(opt)
+    s = DefaultStrategy(DensifyConfig(), EXTENT)
+    info = s.step_post_backward(600, g, opt, out, W, H)
+    assert info == dict(cloned=2, split=1, pruned=3, reset=0, densified=True, opacity_reset=False, changed=True, n=8)
+    after = snapshot(opt)
+    assert g.n == 8 and all(getattr(g, k) is opt[k] for k in O.PARAM_KEYS)
+
+    # layout: kept originals [0, 2, 4, 5, 6], clone of 0, the two children of 1 (clone of 7 and 7 itself pruned)
+    kept = [0, 2, 4, 5, 6]
+    for key in O.PARAM_KEYS:
+        a, b = after[key], before[key]
+        assert a["t"] == 5                                           # the step count carries on
+        for f in ("value", "m", "v"):
+            np.testing.assert_array_equal(a[f][:5], b[f][kept])      # survivors: bit-identical values and moments
+        np.testing.assert_array_equal(a["value"][5], b["value"][0])  # the clone is an exact copy
+        assert not a["m"][5:].any() and not a["v"][5:].any()         # new rows: zero moments
+    for key in ("rotations", "opacities", "sh_dc", "sh_rest"):       # children copy everything but means and scales
+        for c in (6, 7):
+            np.testing.assert_array_equal(after[key]["value"][c], before[key]["value"][1])
+    np.testing.assert_allclose(np.exp(after["scales"]["value"][6:]), np.exp(before["scales"]["value"][[1, 1]]) / 1.6,
+                               rtol=1e-6)
+    # the split original is gone; its children were sampled around it (within a few sigma), not on it
+    means = after["means"]["value"]
+    parent = before["means"]["value"][1]
+    assert not np.any(np.all(means == parent, axis=1))
+    assert np.all(np.abs(means[6:] - parent) < 5 * 0.05) and np.all(means[6] != means[7])
+    # statistics reset for all remaining rows
+    st = s.state.numpy()
+    assert len(st["grad_accum"]) == 8 and not st["grad_accum"].any() and not st["denom"].any()
+    assert not st["max_radii"].any()
+
+
+def test_big_gaussians_pruned_only_after_the_first_reset():
+    cfg = DensifyConfig()
+    for step, expect in ((3000, False), (3100, True)):
+        g, opt, out = crafted()
+        s = DefaultStrategy(cfg, EXTENT)
+        if step == 3100:   # the screen-size test uses the max radius over the interval, not the last one
+            s.step_post_backward(3050, g, opt, out, W, H)
+            out = fake_out([r if i != 6 else 2 for i, (_, _, r) in enumerate(SCENE)], [gx for _, gx, _ in SCENE])
+        before = snapshot(opt)
+        info = s.step_post_backward(step, g, opt, out, W, H)
+        means = snapshot(opt)["means"]["value"]
+        present = [bool(np.any(np.all(means == before["means"]["value"][i], axis=1))) for i in (5, 6)]
+        if expect:
+            assert info["pruned"] == 5 and present == [False, False]
+        else:
+            assert info["pruned"] == 3 and present == [True, True]
+            assert info["opacity_reset"]
+
+
+def test_screen_size_test_can_be_disabled_like_the_reference():
+    g, opt, out = crafted()
+    s = DefaultStrategy(dataclasses.replace(DensifyConfig(), max_screen_size=float("inf")), EXTENT)
+    info = s.step_post_backward(3100, g, opt, out, W, H)
+    assert info["pruned"] == 4     # 3, 7, clone of 7 and the world-huge 5; the screen-huge 6 stays
+
+
+def test_split_sampling_statistics():
+    """Many children of one Gaussian: sample mean ~ centre, covariance ~ R S S^T R^T, scales sigma / 1.6."""
+    k = 20000
+    q = np.array([0.8, -0.4, 0.9, 0.3]) * 2.0          # unnormalized on purpose
+    sigma = np.array([0.3, 0.1, 0.05])
+    g, opt = build([dict(sigma=sigma, opacity=0.5, quat=q)])
+    centre = np.array(opt["means"]).reshape(3).astype(np.float64)
+    s = DefaultStrategy(dataclasses.replace(DensifyConfig(), split_count=k), 1.0, seed=3)
+    info = s.step_post_backward(600, g, opt, fake_out([5], [HIGH]), W, H)
+    assert info["split"] == 1 and info["cloned"] == 0 and g.n == k
+    x = np.array(opt["means"]).reshape(k, 3).astype(np.float64)
+    R = quat_to_matrix(q)
+    cov_ref = R @ np.diag(sigma ** 2) @ R.T
+    L = np.linalg.cholesky(cov_ref)
+    z = np.linalg.solve(L, (x - centre).T).T          # whitened: ~ N(0, I)
+    assert np.all(np.abs(z.mean(axis=0)) < 5 / math.sqrt(k))
+    np.testing.assert_allclose(np.cov(z.T), np.eye(3), atol=5 * math.sqrt(2 / k))
+    np.testing.assert_allclose(np.exp(np.array(opt["scales"]).reshape(k, 3)), np.tile(sigma / 1.6, (k, 1)),
+                               rtol=1e-5)
+    # kurtosis check against a merely decorrelated but non-Gaussian sampler
+    np.testing.assert_allclose((z ** 4).mean(axis=0), 3.0, atol=0.2)
+
+
+def test_split_samples_are_seeded_and_fresh_per_densification():
+    def children(seed, calls):
+        g, opt = build([dict(sigma=0.05, opacity=0.5)])
+        s = DefaultStrategy(DensifyConfig(), EXTENT, seed=seed)
+        for step in range(600, 600 + 100 * calls, 100):
+            s.step_post_backward(step, g, opt, fake_out(np.full(g.n, 5), np.full(g.n, HIGH)), W, H)
+        return np.array(opt["means"]).reshape(-1, 3)
+
+    a, b, c = children(0, 1), children(0, 1), children(1, 1)
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, c)
+    two = children(0, 2)     # the second densification splits both children with fresh draws
+    assert len(two) == 4 and len(np.unique(two, axis=0)) == 4
+
+
+# ---------------------------------------------------------------------------------------------- opacity reset
+def test_opacity_reset_values_and_moments():
+    ops = [0.5, 0.9, 0.007, 0.011, 0.02]
+    g, opt = build([dict(sigma=0.01, opacity=p) for p in ops])
+    before = snapshot(opt)
+    s = DefaultStrategy(DensifyConfig(), EXTENT)
+    info = s.step_post_backward(3000, g, opt, fake_out(np.full(5, 3), np.full(5, LOW)), W, H)
+    assert info["opacity_reset"] and info["densified"] and info["reset"] == 4
+    assert (info["cloned"], info["split"], info["pruned"]) == (0, 0, 0)
+    after = snapshot(opt)
+    o = after["opacities"]["value"]
+    np.testing.assert_allclose(1 / (1 + np.exp(-o.astype(np.float64))), [0.01, 0.01, 0.007, 0.01, 0.01], rtol=1e-5)
+    assert o[2] == before["opacities"]["value"][2]                 # already below: untouched
+    assert after["opacities"]["t"] == 5 and not after["opacities"]["m"].any() and not after["opacities"]["v"].any()
+    assert g.opacities is opt["opacities"] and dr.grad_enabled(g.opacities)
+    for key in ("means", "scales", "rotations", "sh_dc", "sh_rest"):  # nothing else touched
+        for f in ("value", "m", "v"):
+            np.testing.assert_array_equal(after[key][f], before[key][f])
+
+
+@pytest.mark.parametrize("white, step, expect", [(True, 500, True), (False, 500, False), (True, 600, False),
+                                                 (False, 6000, True), (False, 15000, False)])
+def test_opacity_reset_schedule(white, step, expect):
+    g, opt = build([dict(sigma=0.01, opacity=0.5)] * 2)
+    s = DefaultStrategy(DensifyConfig(), EXTENT)
+    info = s.step_post_backward(step, g, opt, fake_out([3, 3], [LOW, LOW]), W, H, white_background=white)
+    assert info["opacity_reset"] == expect
+    p = 1 / (1 + np.exp(-np.array(opt["opacities"], np.float64)))
+    np.testing.assert_allclose(p, 0.01 if expect else 0.5, rtol=1e-5)
+
+
+def test_nothing_happens_from_densify_until_iter_on():
+    g, opt, out = crafted()
+    s = DefaultStrategy(DensifyConfig(), EXTENT)
+    for step in (15000, 15100, 18000):
+        info = s.step_post_backward(step, g, opt, out, W, H)
+        assert not info["changed"] and g.n == 8
+    assert s.state is None       # no statistics either
+    info = s.step_post_backward(14900, g, opt, out, W, H)
+    assert info["densified"] and info["cloned"] == 2
+
+
+def test_densification_schedule_and_state_size_check():
+    g, opt, out = crafted()
+    s = DefaultStrategy(DensifyConfig(), EXTENT)
+    assert not s.step_post_backward(500, g, opt, out, W, H)["densified"]   # iteration > densify_from_iter only
+    assert not s.step_post_backward(550, g, opt, out, W, H)["densified"]
+    assert s.state.numpy()["denom"].tolist() == [2, 2, 2, 2, 0, 2, 2, 2]
+    with pytest.raises(ValueError):
+        s.step_post_backward(551, g, opt, fake_out([1, 1], [0.0, 0.0]), W, H)
+
+
+def test_state_export_import():
+    g, opt, out = crafted()
+    s = DefaultStrategy(DensifyConfig(), EXTENT, seed=4)
+    s.step_post_backward(600, g, opt, out, W, H)
+    s.step_post_backward(601, g, opt, fake_out(np.full(8, 6), np.full(8, LOW)), W, H)
+    arrays, meta = s.export_state(), s.export_meta()
+    s2 = DefaultStrategy(DensifyConfig(), EXTENT)
+    s2.import_state(arrays, meta)
+    assert s2.seed == 4 and s2.draws == 1 and isinstance(s2.state, DensifyState)
+    for k, v in s2.state.numpy().items():
+        np.testing.assert_array_equal(v, arrays[k])
+
+
+# ---------------------------------------------------------------------------------------------- real renderer
+def test_with_the_real_rasterizer():
+    """Render -> backward -> strategy -> Adam step -> render again, with the real RenderOutput."""
+    import scene_factory as sf
+    from mi_gaussians.raster.rasterize import render
+
+    cam = sf.identity_camera(32, 24, fx=30.0)
+    rng = np.random.default_rng(0)
+    n = 12
+    means = np.c_[rng.uniform(-0.5, 0.5, (n, 2)), rng.uniform(2.0, 3.0, n)]
+    means[-1] = (0.0, 0.0, -3.0)        # behind the camera: radius 0, never accumulated
+    g = Gaussians.from_numpy(means, np.full((n, 3), math.log(0.1)), np.tile([1.0, 0, 0, 0], (n, 1)),
+                             np.full(n, 0.5), rng.normal(size=(n, 3)), np.zeros((n, 3, 3)))
+    opt = O.make_optimizer(g, OptimConfig(), 1.0)
+    O.sync_gaussians(opt, g)
+    cfg = dataclasses.replace(DensifyConfig(), grad_threshold=1e-12)   # densify every visible Gaussian
+    s = DefaultStrategy(cfg, 1.0)
+    for step in (599, 600):
+        out = render(g, cam)
+        dr.backward(dr.mean(dr.square(out.rgb.array - 0.25)))
+        info = s.step_post_backward(step, g, opt, out, cam.width, cam.height)
+        if step == 599:
+            st = s.state.numpy()
+            assert np.all(st["grad_accum"][:-1] > 0) and st["denom"][-1] == 0 and st["max_radii"][-1] == 0
+            opt.step()
+            O.sync_gaussians(opt, g)
+    assert info["split"] == n - 1 and info["cloned"] == 0 and g.n == n + (n - 1)   # sigma 0.1 > 0.01: split
+    out = render(g, cam)
+    dr.backward(dr.mean(dr.square(out.rgb.array - 0.25)))
+    opt.step()
+    O.sync_gaussians(opt, g)
+    assert dr.width(out.radii) == g.n and np.all(np.isfinite(np.array(opt["means"])))
+
+
+def test_gradients_cleared_on_every_densification_iteration():
+    """Even when nothing is cloned, split or pruned, a densification iteration leaves no gradient behind (the trainer
+    skips opt.step() then, and a stale gradient would be added to the next backward pass)."""
+    g, opt = build([dict(sigma=0.01, opacity=0.5)] * 3)
+    s = DefaultStrategy(DensifyConfig(), EXTENT)
+    for step, changed in ((650, False), (700, True)):
+        dr.backward(dr.sum(dr.square(g.means.array)) + dr.sum(g.opacities.array) + dr.sum(g.sh_rest.array))
+        before = snapshot(opt)
+        info = s.step_post_backward(step, g, opt, fake_out([3, 3, 3], [LOW] * 3), W, H)
+        assert info["changed"] == changed and (info["cloned"], info["split"], info["pruned"]) == (0, 0, 0)
+        if not changed:
+            assert np.array(dr.grad(opt["means"])).any() and np.array(dr.grad(opt["sh_rest"])).any()
+            continue
+        for key in O.PARAM_KEYS:
+            assert not np.array(dr.grad(opt[key])).any()
+            assert opt[key] is getattr(g, key)
+            np.testing.assert_array_equal(snapshot(opt)[key]["m"], before[key]["m"])   # moments untouched

@@ -1,0 +1,170 @@
+"""Training end to end on a small synthetic Blender-layout scene: PSNR rises, outputs exist, resume is exact,
+divergence keeps the last good checkpoint, and bad datasets are refused before training starts."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import mi_gaussians as mig
+from mi_gaussians.config import DataConfig, DensifyConfig, OptimConfig, TrainConfig
+from synthetic_dataset import make_blender_dataset
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return make_blender_dataset(tmp_path_factory.mktemp("synthetic") / "scene")
+
+
+def small_config(iterations=300, **kw) -> TrainConfig:
+    return TrainConfig(
+        data=DataConfig(background=(1.0, 1.0, 1.0), random_points=5000),
+        optim=OptimConfig(iterations=iterations, position_lr_max_steps=iterations, sh_degree=1,
+                          sh_increase_interval=100),
+        densify=DensifyConfig(densify_from_iter=100, densify_until_iter=iterations // 2, densification_interval=50,
+                              opacity_reset_interval=150),
+        checkpoint_every=kw.pop("checkpoint_every", 100), eval_every=100, save_iterations=(), **kw)
+
+
+def load(scene, cfg):
+    d = cfg.data
+    return mig.load_dataset(scene, background=d.background, random_points=d.random_points, seed=d.seed)
+
+
+def test_psnr_rises_and_outputs_are_written(scene, tmp_path):
+    from mi_gaussians.optim.trainer import Trainer
+
+    cfg = small_config(600)
+    ds = load(scene, cfg)
+    tr = Trainer(ds, cfg, tmp_path / "run", progress=False)
+    before = tr._test_psnr()
+    metrics = tr.run()
+    after = metrics["mean"]["psnr"]
+    # stated margin: from random points (about 7.5 dB) to at least 22 dB and +12 dB in 600 iterations
+    # (measured: 25.7 dB; the curve passes 20 dB near iteration 300)
+    assert after > before + 12.0, (before, after)
+    assert after > 22.0, after
+    out = tmp_path / "run"
+    for name in ("point_cloud.ply", "metrics.json", "config.json", "curves.png", "history.json",
+                 "checkpoints/ckpt.npz"):
+        assert (out / name).exists(), name
+    assert len(list((out / "renders").glob("*.exr"))) == len(ds.test)
+    assert len(list((out / "compare").glob("*.png"))) == len(ds.test)
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["gaussians"] == mig.Gaussians.load_ply(out / "point_cloud.ply").n
+    assert set(m["views"]) == {v.name for v in ds.test}
+    assert m["iterations_per_second"] > 0
+
+
+def test_checkpoint_round_trip_is_exact(scene, tmp_path):
+    """Everything a run needs to continue comes back bit-identical from the checkpoint."""
+    from mi_gaussians.optim import optimizer as optim_state
+    from mi_gaussians.optim.trainer import Trainer
+
+    cfg = small_config(250, checkpoint_every=250)
+    a = Trainer(load(scene, cfg), cfg, tmp_path / "run", progress=False)
+    a.run()
+    b = Trainer(load(scene, cfg), cfg, tmp_path / "run", progress=False)
+    b.load_checkpoint()
+    assert b.step == a.step == 250 and b.g.n == a.g.n
+    for k, v in a.g.numpy().items():
+        np.testing.assert_array_equal(b.g.numpy()[k], v, err_msg=k)
+    sa, sb = optim_state.export_state(a.opt), optim_state.export_state(b.opt)
+    assert sa.keys() == sb.keys()
+    for k in sa:
+        np.testing.assert_array_equal(sa[k], sb[k], err_msg=k)
+    da, db = a.strategy.export_state(), b.strategy.export_state()
+    for k in da:
+        np.testing.assert_array_equal(da[k], db[k], err_msg=k)
+    assert a.strategy.export_meta() == b.strategy.export_meta()
+    assert a.sampler.state() == b.sampler.state()
+    assert a.bg_rng.bit_generator.state == b.bg_rng.bit_generator.state
+    assert a.history.to_dict() == b.history.to_dict()
+    assert b.opt.learning_rate("means") is not None
+
+
+def test_kill_9_then_resume_ends_at_the_same_quality(scene, tmp_path):
+    """``mi-gs optimize`` killed with SIGKILL after a checkpoint, then ``--resume``: it finishes, and its test
+    PSNR matches an uninterrupted run (two runs are not bit-identical anyway: parallel float reductions)."""
+    import signal
+    import subprocess
+    import sys
+    import tempfile
+    import time
+
+    exe = str(Path(sys.executable).parent / "mi-gs")
+    args = ["optimize", str(scene), "--iterations", "600", "--white-background", "--sh-degree", "1",
+            "--checkpoint-every", "100", "--eval-every", "0", "--quiet", "--random-points", "5000"]
+    out = tmp_path / "killed"
+    proc = subprocess.Popen([exe, *args, "-o", str(out)], cwd=tempfile.gettempdir(),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    ckpt = out / "checkpoints" / "ckpt.npz"
+    deadline = time.time() + 240
+    step = 0
+    while time.time() < deadline and proc.poll() is None:
+        if ckpt.exists():
+            try:
+                with np.load(ckpt) as z:
+                    step = json.loads(bytes(z["meta"]).decode())["step"]
+            except Exception:   # being replaced right now
+                step = 0
+            if step >= 200:
+                break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run finished before it could be killed"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert not (out / "point_cloud.ply").exists()
+    res = subprocess.run([exe, *args, "-o", str(out), "--resume"], cwd=tempfile.gettempdir(), capture_output=True,
+                         text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    resumed = json.loads((out / "metrics.json").read_text())
+    assert resumed["iterations"] == 600
+    res = subprocess.run([exe, *args, "-o", str(tmp_path / "straight")], cwd=tempfile.gettempdir(),
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    straight = json.loads((tmp_path / "straight" / "metrics.json").read_text())
+    assert abs(resumed["mean"]["psnr"] - straight["mean"]["psnr"]) < 0.5, (resumed["mean"], straight["mean"])
+
+
+def test_divergence_stops_and_keeps_the_checkpoint(scene, tmp_path):
+    from mi_gaussians.optim.trainer import Trainer, TrainingDiverged
+
+    cfg = small_config(60, checkpoint_every=20)
+    tr = Trainer(load(scene, cfg), cfg, tmp_path / "run", progress=False)
+    orig = tr._iteration
+
+    def poisoned(step):
+        if step == 45:
+            import drjit as dr
+            import mitsuba as mi
+
+            tr.opt["means"] = mi.TensorXf(dr.full(mi.Float, float("nan"), tr.g.n * 3), (tr.g.n, 3))
+        return orig(step)
+
+    tr._iteration = poisoned
+    with pytest.raises(TrainingDiverged, match="non-finite|NaN|nan"):
+        tr.run()
+    ckpt = tmp_path / "run" / "checkpoints" / "ckpt.npz"
+    with np.load(ckpt) as z:
+        meta = json.loads(bytes(z["meta"]).decode())
+        assert meta["step"] == 40
+        assert np.all(np.isfinite(z["param/means"]))
+
+
+def test_bad_dataset_refused_before_training(tmp_path):
+    import subprocess
+    import sys
+    import tempfile
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    exe = Path(sys.executable).parent / "mi-gs"
+    res = subprocess.run([str(exe), "optimize", str(empty), "-o", str(tmp_path / "out")], capture_output=True,
+                         text=True, cwd=tempfile.gettempdir(), timeout=300)
+    assert res.returncode == 2 and "Traceback" not in res.stderr and str(empty) in res.stderr
+    assert not (tmp_path / "out" / "checkpoints").exists()
