@@ -82,9 +82,14 @@ def _pack(values: list, stride: int) -> "mi.Float":
     return buf
 
 
+LOG2E = 1.4426950408889634
+
+
 def _pack_geometry(mean2d, conic, opacity, depth) -> "mi.Float":
-    """[mx, my, -a/2, -b, -c/2, opacity, depth, 0] per Gaussian, so that power = qa dx^2 + qb dx dy + qc dy^2."""
-    return _pack([mean2d.x, mean2d.y, -0.5 * conic.x, -conic.y, -0.5 * conic.z, opacity, depth], GEO)
+    """[mx, my, qa, qb, qc, opacity, depth, 0] per Gaussian with (qa, qb, qc) = log2(e) (-a/2, -b, -c/2), so that
+    the Gaussian falloff is exp(power) = exp2(qa dx^2 + qb dx dy + qc dy^2)."""
+    return _pack([mean2d.x, mean2d.y, (-0.5 * LOG2E) * conic.x, -LOG2E * conic.y, (-0.5 * LOG2E) * conic.z,
+                  opacity, depth], GEO)
 
 
 def _lane_pixels(frame: Frame, n_lanes: int):
@@ -127,26 +132,27 @@ def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cf
         ax2 = qa * dx * dx            # shared by the lane's 4 pixels (same column)
         bx = qb * dx
         act, T, C, D, last = list(act), list(T), list(C), list(D), list(last)
-        hit = []
-        alphas = []
+        hit, ws, Ts = [], [], []
         for k in range(P):
             dy = my - pys[k]
-            power = dr.fma(dy, dr.fma(qc, dy, bx), ax2)
-            alpha = fmin(op * dr.exp(power), alpha_max)
-            h = act[k] & (alpha >= alpha_min) & (power <= 0)
+            power2 = dr.fma(dy, dr.fma(qc, dy, bx), ax2)      # power * log2(e)
+            alpha = fmin(op * dr.exp2(power2), alpha_max)
+            h = act[k] & (alpha >= alpha_min) & (power2 <= 0)
             test_T = T[k] * (1.0 - alpha)
             stop = h & (test_T < t_min)
             act[k] = act[k] & ~stop
             h = h & ~stop
             hit.append(h)
-            alphas.append(alpha)
+            # weight alpha T of a hit, 0 otherwise: the updates below become plain multiply-adds
+            ws.append(dr.select(h, alpha * T[k], 0.0))
+            Ts.append(dr.select(h, test_T, T[k]))
         any_hit = _any(hit)
         c = dr.gather(mi.Vector4f, col, g, active=any_hit)
+        rgb = mi.Color3f(c.x, c.y, c.z)
         for k in range(P):
-            w = alphas[k] * T[k]
-            C[k] = dr.select(hit[k], C[k] + mi.Color3f(c.x, c.y, c.z) * w, C[k])
-            D[k] = dr.select(hit[k], D[k] + z * w, D[k])
-            T[k] = dr.select(hit[k], T[k] * (1.0 - alphas[k]), T[k])
+            C[k] = dr.fma(rgb, ws[k], C[k])
+            D[k] = dr.fma(z, ws[k], D[k])
+            T[k] = Ts[k]
             last[k] = dr.select(hit[k], i + 1, last[k])
         return i + 1, tuple(act), tuple(T), tuple(C), tuple(D), tuple(last)
 
@@ -201,7 +207,7 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
         g = dr.gather(mi.UInt32, inst, i)
         f = dr.gather(ArrayXf, geo, g, shape=(GEO, n_lanes))
         mx, my, qa, qb, qc, op, z = f[0], f[1], f[2], f[3], f[4], f[5], f[6]
-        ca, cb, cc = -2.0 * qa, -qb, -2.0 * qc       # the conic (a, b, c)
+        ca, cb, cc = (-2.0 / LOG2E) * qa, (-1.0 / LOG2E) * qb, (-2.0 / LOG2E) * qc   # the conic (a, b, c)
         dx = mx - px
         ax2 = qa * dx * dx
         bx = qb * dx
@@ -209,11 +215,11 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
         hit, alphas, dys, Gs, unclamped = [], [], [], [], []
         for k in range(P):
             dy = my - pys[k]
-            power = dr.fma(dy, dr.fma(qc, dy, bx), ax2)   # bit-identical to the forward pass
-            G = dr.exp(power)
+            power2 = dr.fma(dy, dr.fma(qc, dy, bx), ax2)   # bit-identical to the forward pass
+            G = dr.exp2(power2)
             raw = op * G
             alpha = fmin(raw, alpha_max)
-            h = valid[k] & (i < last[k]) & (alpha >= alpha_min) & (power <= 0)
+            h = valid[k] & (i < last[k]) & (alpha >= alpha_min) & (power2 <= 0)
             hit.append(h)
             alphas.append(alpha)
             dys.append(dy)
