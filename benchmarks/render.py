@@ -8,7 +8,7 @@ Scene: N Gaussians uniformly spread over a 1.2-radian frustum at depths 2.5-5 (a
 at 800 x 800 with 100k, like a trained model at that size), random anisotropic scales, rotations, opacities and
 degree-3 SH. Times are medians of ``--repeats`` runs after two warm-up runs (compilation excluded), measured with
 ``dr.sync_thread()`` so the asynchronous kernels are inside the timing. "Evaluations" are (pixel x Gaussian) blend
-steps actually executed by the loops (early termination included).
+steps actually executed by the loops (early termination included), divided by the best loop-kernel time.
 """
 
 from __future__ import annotations
@@ -33,7 +33,9 @@ def make_scene(n: int, seed: int = 0) -> dict:
         sh_rest=rng.normal(size=(n, 15, 3)) * 0.1).items()}
 
 
-def timed(fn, repeats: int) -> float:
+def timed(fn, repeats: int) -> tuple[float, float]:
+    """(median, best) wall seconds over ``repeats`` runs after two warm-ups. This is a shared 2-core VM whose
+    speed drifts by 10-20 % between runs, so both are reported; the best is the least disturbed measurement."""
     import drjit as dr
 
     fn()
@@ -45,7 +47,24 @@ def timed(fn, repeats: int) -> float:
         fn()
         dr.sync_thread()
         ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
+    return statistics.median(ts), min(ts)
+
+
+def loop_kernel_times(fn, repeats: int) -> tuple[float, float]:
+    """Best (forward, backward) blend-loop kernel times in ms over ``repeats`` runs of a forward+backward ``fn``:
+    the two longest kernels of a run are the two blend loops, the backward being the longer."""
+    import drjit as dr
+
+    f_best, b_best = float("inf"), float("inf")
+    for _ in range(repeats):
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            dr.kernel_history_clear()
+            fn()
+            hist = dr.kernel_history()
+        b, f = sorted((h.get("execution_time", 0.0) for h in hist if h["type"] == dr.KernelType.JIT),
+                      reverse=True)[:2]
+        f_best, b_best = min(f_best, f), min(b_best, b)
+    return f_best, b_best
 
 
 def main(argv=None) -> int:
@@ -98,13 +117,7 @@ def main(argv=None) -> int:
             st = holder["bwd"]._stats
             ev_f = int(st.forward_evaluations[0])
             ev_b = int(st.backward_evaluations[0])
-            # blend-only kernel times for the throughput figures
-            with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
-                dr.kernel_history_clear()
-                fwd_bwd()
-                hist = dr.kernel_history()
-            loops = sorted((h.get("execution_time", 0.0) for h in hist if h["type"] == dr.KernelType.JIT),
-                           reverse=True)[:2]
+            loops = loop_kernel_times(fwd_bwd, args.repeats)
             t_peer = None
             if not args.no_peer:
                 scene = mi.load_dict({"type": "scene", "integrator": {"type": "volprim_rf_basic"},
@@ -113,20 +126,19 @@ def main(argv=None) -> int:
                 def peer():
                     dr.eval(mi.render(scene, spp=1))
 
-                t_peer = timed(peer, max(1, min(args.repeats, 3)))
+                t_peer = timed(peer, max(1, min(args.repeats, 3)))[0]
             rows.append((n, res, holder["fwd"].n_instances, t_f, t_fb, ev_f, ev_b, loops, t_peer))
             r = rows[-1]
-            print(f"  N={n} {res}x{res}: fwd {t_f*1e3:.1f} ms, fwd+bwd {t_fb*1e3:.1f} ms", file=sys.stderr)
+            print(f"  N={n} {res}x{res}: fwd {t_f[0]*1e3:.1f} ms, fwd+bwd {t_fb[0]*1e3:.1f} ms", file=sys.stderr)
 
     print()
-    print("| Gaussians | image | instances | forward ms | fwd+bwd ms | backward ms | fwd evals/s | bwd evals/s "
-          "| volprim_rf_basic ms (1 spp) | volprim / forward |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
-    for n, res, inst, t_f, t_fb, ev_f, ev_b, loops, t_peer in rows:
-        # throughput over the blend loop kernels themselves (kernel history, ms), forward = the smaller of the two
-        k_fwd, k_bwd = (sorted(loops)[0], sorted(loops)[-1]) if len(loops) == 2 else (t_f * 1e3, t_fb * 1e3)
-        peer = f"{t_peer*1e3:.0f} | {t_peer / t_f:.1f}x" if t_peer else "- | -"
-        print(f"| {n:,} | {res}x{res} | {inst:,} | {t_f*1e3:.1f} | {t_fb*1e3:.1f} | {(t_fb - t_f)*1e3:.1f} "
+    print("| Gaussians | image | instances | forward ms, median (best) | fwd+bwd ms, median (best) "
+          "| forward loop evals/s | backward loop evals/s | volprim_rf_basic ms (1 spp) | volprim / forward |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for n, res, inst, t_f, t_fb, ev_f, ev_b, (k_fwd, k_bwd), t_peer in rows:
+        peer = f"{t_peer*1e3:.0f} | {t_peer / t_f[0]:.1f}x" if t_peer else "- | -"
+        print(f"| {n:,} | {res}x{res} | {inst:,} | {t_f[0]*1e3:.1f} ({t_f[1]*1e3:.1f}) "
+              f"| {t_fb[0]*1e3:.1f} ({t_fb[1]*1e3:.1f}) "
               f"| {ev_f / (k_fwd * 1e-3) / 1e9:.2f} G | {ev_b / (k_bwd * 1e-3) / 1e9:.2f} G | {peer} |")
     return 0
 
