@@ -156,6 +156,22 @@ def test_divergence_stops_and_keeps_the_checkpoint(scene, tmp_path):
         assert np.all(np.isfinite(z["param/means"]))
 
 
+def test_random_background_recomposites_rgba_targets(scene, tmp_path):
+    from PIL import Image
+
+    from mi_gaussians.optim.trainer import Trainer
+
+    cfg = small_config(40)
+    cfg = dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, random_background=True))
+    tr = Trainer(load(scene, cfg), cfg, tmp_path / "run", progress=False)
+    rgba = np.asarray(Image.open(tr.ds.train[3].image_path)).astype(np.float32) / 255.0
+    bg = (0.2, 0.7, 0.4)
+    expect = rgba[..., :3] * rgba[..., 3:] + np.array(bg, np.float32) * (1 - rgba[..., 3:])
+    np.testing.assert_allclose(np.array(tr.target(3, bg)), expect, atol=2e-6)
+    metrics = tr.run()
+    assert np.isfinite(metrics["mean"]["psnr"])
+
+
 def test_bad_dataset_refused_before_training(tmp_path):
     import subprocess
     import sys

@@ -99,8 +99,13 @@ class Trainer:
         self.elapsed = 0.0        # training seconds (evaluation excluded)
         self.bg_rng = np.random.default_rng(cfg.seed + 1)
         self.sampler = ViewSampler(len(ds.train), cfg.seed)
-        # Targets are decoded once and kept as Dr.Jit tensors (copied into Dr.Jit-owned memory)
+        # Targets are decoded once and kept as Dr.Jit tensors (copied into Dr.Jit-owned memory). With a random
+        # background, RGBA targets are re-composited over the same random colour each iteration (the reference
+        # keeps them composited over the fixed one), so we also keep the coverage (1 - alpha).
         self.targets = [owned_tensor(v.load_image()) for v in ds.train]
+        self.transparency = None
+        if cfg.optim.random_background:
+            self.transparency = [owned_tensor(1.0 - v.load_alpha()[..., None]) for v in ds.train]
         self.g = initial_gaussians(ds, cfg.optim.sh_degree)
         self.opt = optim_state.make_optimizer(self.g, cfg.optim, self.extent)
         self.strategy = DefaultStrategy(cfg.densify, self.extent, seed=cfg.seed + 2)
@@ -149,6 +154,15 @@ class Trainer:
         self.sampler.restore(meta["sampler"])
         self.bg_rng.bit_generator.state = meta["bg_rng"]
 
+    def target(self, idx: int, bg) -> "mi.TensorXf":
+        """Training view ``idx``'s image over background ``bg`` (only RGBA images change with the background)."""
+        target = self.targets[idx]
+        if self.transparency is not None:
+            # image = straight * a + fixed_bg * (1 - a)  ->  straight * a + bg * (1 - a)
+            delta = mi.TensorXf(mi.Float([b - f for b, f in zip(bg, self.background)]), (1, 1, 3))
+            target = target + self.transparency[idx] * delta
+        return target
+
     # ------------------------------------------------------------------ one iteration
     def _iteration(self, step: int) -> float:
         cfg = self.cfg
@@ -161,7 +175,7 @@ class Trainer:
         bg = tuple(self.bg_rng.random(3)) if cfg.optim.random_background else self.background
         optim_state.sync_gaussians(self.opt, self.g)
         out = render(self.g, view.camera, background=bg, sh_degree=degree, cfg=cfg.raster)
-        loss = photometric_loss(out.rgb, self.targets[idx], cfg.optim.lambda_dssim)
+        loss = photometric_loss(out.rgb, self.target(idx, bg), cfg.optim.lambda_dssim)
         # (a view where nothing is visible gives a loss that does not depend on the parameters)
         dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
         value = float(loss[0])
@@ -220,7 +234,7 @@ class Trainer:
                     self.save_checkpoint()
                 bar.update(1)
                 if step % 10 == 0 or step == total:
-                    post = {"loss": f"{ema:.4f}", "N": self.g.n}
+                    post = {"loss": f"{ema:.4f}", "N": f"{self.g.n:,}"}
                     if last_psnr is not None:
                         post["PSNR"] = f"{last_psnr:.2f}"
                     bar.set_postfix(post)
