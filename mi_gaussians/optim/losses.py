@@ -335,7 +335,18 @@ def _combine(Float, r: dict, a: float, b: float, c: float, inv_n: float):
     return value
 
 
-class _LossOp(dr.CustomOp):
+class _TwoImageOp(dr.CustomOp):
+    """Shared reverse mode of the SSIM ops: ``_grads(g)`` gives the gradients w.r.t. the images x and y."""
+
+    def backward(self):
+        gi, gr = self._grads(self.grad_out())
+        if gi is not None:
+            self.set_grad_in("x", gi)
+        if gr is not None:
+            self.set_grad_in("y", gr)
+
+
+class _LossOp(_TwoImageOp):
     """c + a * mean|x - y| + b * mean(SSIM map) (Python floats, a may be 0) with a hand-written derivative."""
 
     def eval(self, x, y, shape, weights, c1, c2, a, b, c, need_img, need_ref):
@@ -361,13 +372,6 @@ class _LossOp(dr.CustomOp):
         return _backward(self.x, self.y, self.coef, self.coef_ids, self.shape, self.weights, s_scale, l1_scale,
                          self.need_img, self.need_ref)
 
-    def backward(self):
-        gi, gr = self._grads(self.grad_out())
-        if gi is not None:
-            self.set_grad_in("x", gi)
-        if gr is not None:
-            self.set_grad_in("y", gr)
-
     def forward(self):
         gi, gr = self._grads(1.0)
         d = 0.0
@@ -381,7 +385,7 @@ class _LossOp(dr.CustomOp):
         return "ssim_loss"
 
 
-class _SSIMMapOp(dr.CustomOp):
+class _SSIMMapOp(_TwoImageOp):
     """The SSIM map itself (flat, natural layout); the backward weights the derivative maps by the incoming
     per-pixel gradient before blurring them."""
 
@@ -401,13 +405,6 @@ class _SSIMMapOp(dr.CustomOp):
         dr.eval([c.data for c in coef])
         return _backward(self.x, self.y, coef, self.coef_ids, self.shape, self.weights, _opaque(Float, 1.0), None,
                          self.need_img, self.need_ref)
-
-    def backward(self):
-        gi, gr = self._grads(self.grad_out())
-        if gi is not None:
-            self.set_grad_in("x", gi)
-        if gr is not None:
-            self.set_grad_in("y", gr)
 
     def forward(self):
         # d map = c_mu1 G*dx + c_mu2 G*dy + c_sq G*(2 x dx + 2 y dy) + c_xy G*(y dx + x dy)
