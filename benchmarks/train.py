@@ -3,7 +3,7 @@ number of Gaussians (to read off the comparison with OpenSplat's CPU build).
 
     python benchmarks/train.py mi_objects_blender mi_objects_colmap --milestones 7000 30000
     python benchmarks/train.py fox maryrose --milestones 7000
-    python benchmarks/train.py mi_objects_colmap --milestones 2000      # the OpenSplat comparison point
+    python benchmarks/train.py mi_objects_colmap --milestones 2000 --schedule 30000   # vs OpenSplat at 2000 of 30k
 
 Datasets are read from ../shared/data (next to the repository). Outputs go to --out (default /tmp/mi_gs_bench).
 """
@@ -31,7 +31,7 @@ DATASETS = {
 }
 
 
-def run_one(name: str, milestones: list[int], out_root: Path, variant: str) -> list[dict]:
+def run_one(name: str, milestones: list[int], out_root: Path, variant: str, schedule: int | None = None) -> list[dict]:
     import mitsuba as mi
 
     mi.set_variant(variant)
@@ -46,12 +46,14 @@ def run_one(name: str, milestones: list[int], out_root: Path, variant: str) -> l
         print(f"{name}: {path} missing, skipped", file=sys.stderr)
         return []
     iters = max(milestones)
+    # the learning-rate decay and densification of a `schedule`-iteration run, stopped at the last milestone
+    schedule = max(schedule or iters, iters)
     cfg = TrainConfig(data=DataConfig(resolution=res, background=bg),
-                      optim=OptimConfig(iterations=iters),
-                      densify=DensifyConfig(densify_until_iter=min(15_000, iters // 2) if iters < 30_000 else 15_000),
+                      optim=OptimConfig(iterations=iters, position_lr_max_steps=schedule),
+                      densify=DensifyConfig(densify_until_iter=min(15_000, schedule // 2)),
                       checkpoint_every=1000, eval_every=1000, save_iterations=tuple(milestones))
     ds = mig.load_dataset(path, resolution=res, background=bg)
-    out = out_root / name
+    out = out_root / (name if schedule == iters else f"{name}_of_{schedule}")
     tr = Trainer(ds, cfg, out, progress=True)
     tr.run(resume=(out / "checkpoints" / "ckpt.npz").exists())
     h = tr.history
@@ -87,10 +89,13 @@ def main(argv=None) -> int:
     ap.add_argument("--milestones", type=int, nargs="+", default=[7000, 30000])
     ap.add_argument("--out", default="/tmp/mi_gs_bench")
     ap.add_argument("--variant", default="llvm_ad_rgb")
+    ap.add_argument("--schedule", type=int, default=None,
+                    help="use the learning-rate and densification schedule of this many iterations "
+                         "(default: the last milestone), e.g. 30000 to compare with iteration 2000 of a 30k run")
     args = ap.parse_args(argv)
     rows = []
     for name in args.datasets:
-        rows += run_one(name, sorted(args.milestones), Path(args.out), args.variant)
+        rows += run_one(name, sorted(args.milestones), Path(args.out), args.variant, args.schedule)
     print("\n| dataset | iterations | test PSNR | test SSIM | Gaussians | minutes | s / it (at milestone) |")
     print("|---|---:|---:|---:|---:|---:|---:|")
     for r in rows:
