@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.util
 import math
 import subprocess
+import tempfile
 import sys
 
 import numpy as np
@@ -59,4 +60,5 @@ def test_lpips_unavailable_without_torch():
 def test_metrics_imports_no_training_code():
     code = ("import sys, mi_gaussians.metrics as m; "
             "assert not [k for k in sys.modules if k.startswith('mi_gaussians.optim')], sorted(sys.modules)")
-    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+    # (outside the source tree, so that the installed package is the one imported)
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120, cwd=tempfile.gettempdir())
