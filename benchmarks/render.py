@@ -128,7 +128,6 @@ def main(argv=None) -> int:
 
                 t_peer = timed(peer, max(1, min(args.repeats, 3)))[0]
             rows.append((n, res, holder["fwd"].n_instances, t_f, t_fb, ev_f, ev_b, loops, t_peer))
-            r = rows[-1]
             print(f"  N={n} {res}x{res}: fwd {t_f[0]*1e3:.1f} ms, fwd+bwd {t_fb[0]*1e3:.1f} ms", file=sys.stderr)
 
     print()

@@ -11,7 +11,6 @@ Datasets are read from ../shared/data (next to the repository). Outputs go to --
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from pathlib import Path

@@ -25,7 +25,6 @@ image sizes from the headers) and raises ``ValueError`` with one line naming the
 from __future__ import annotations
 
 import logging
-import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path

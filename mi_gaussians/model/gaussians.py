@@ -18,7 +18,6 @@ import math
 import os
 from dataclasses import dataclass
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 

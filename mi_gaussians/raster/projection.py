@@ -18,7 +18,6 @@ Covering that box (with a tiny safety margin) makes the image independent of the
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import drjit as dr
