@@ -160,13 +160,37 @@ def cmd_render(args) -> int:
 
 
 # -------------------------------------------------------------------------------------------------- optimize
-def _train_config(args):
+def _is_scene_file(path: Path) -> bool:
+    return path.suffix.lower() == ".xml"
+
+
+def _scene_config(args):
     import dataclasses
 
-    from .config import DataConfig, DensifyConfig, OptimConfig, TrainConfig
+    from .config import SceneConfig
+
+    kw = {k: getattr(args, k) for k in ("rig", "views", "test_views", "radius", "fov", "spp", "init", "init_points")
+          if getattr(args, k) is not None}
+    if args.resolution is not None:
+        kw["resolution"] = tuple(args.resolution)
+    if args.up is not None:
+        kw["up"] = tuple(args.up)
+    return dataclasses.replace(SceneConfig(), linear=args.linear, **kw)
+
+
+def _train_config(args, scene_file: bool = False):
+    import dataclasses
+
+    from .config import DataConfig, DensifyConfig, OptimConfig, SceneConfig, TrainConfig
 
     d, o, dn = DataConfig(), OptimConfig(), DensifyConfig()
-    data = dataclasses.replace(d, resolution=args.resolution, background=_background(args.background)
+    if scene_file:
+        resolution, scene = 1, _scene_config(args)
+    else:
+        if args.resolution is not None and len(args.resolution) != 1:
+            raise InputError("-r/--resolution takes one divisor for a dataset folder (e.g. -r 4)")
+        resolution, scene = (args.resolution[0] if args.resolution else d.resolution), SceneConfig()
+    data = dataclasses.replace(d, resolution=resolution, background=_background(args.background)
                                if args.background is not None else (1.0, 1.0, 1.0) if args.white_background
                                else d.background, test_every=args.test_every, seed=args.seed,
                                random_points=args.random_points if args.random_points is not None
@@ -184,7 +208,7 @@ def _train_config(args):
         dens_kw["densify_until_iter"] = min(dn.densify_until_iter, args.iterations // 2)
     densify = dataclasses.replace(dn, **dens_kw)
     save = tuple(i for i in TrainConfig().save_iterations if i < optim.iterations)
-    return TrainConfig(data=data, optim=optim, densify=densify, seed=args.seed,
+    return TrainConfig(data=data, optim=optim, densify=densify, scene=scene, seed=args.seed,
                        checkpoint_every=args.checkpoint_every, eval_every=args.eval_every, save_iterations=save)
 
 
@@ -197,6 +221,8 @@ def cmd_optimize(args) -> int:
     src = Path(args.scene)
     if not src.exists():
         raise InputError(f"{src}: not found")
+    if args.resume and args.overwrite:
+        raise InputError("give at most one of --resume and --overwrite")
     if args.resume:
         cfg_path = out / "config.json"
         if not cfg_path.exists():
@@ -205,20 +231,44 @@ def cmd_optimize(args) -> int:
         cfg = TrainConfig.from_dict(saved["train"])
     else:
         if (out / "checkpoints").exists() and any((out / "checkpoints").iterdir()):
-            raise InputError(f"{out}: holds an earlier run (use --resume to continue it, or another folder)")
-        cfg = _train_config(args)
-    d = cfg.data
-    ds = load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
-                      random_points=d.random_points, seed=d.seed)
+            if not args.overwrite:
+                raise InputError(f"{out}: holds an earlier run (use --resume to continue it, --overwrite to start "
+                                 "again, or another folder)")
+            import shutil
+
+            shutil.rmtree(out / "checkpoints")
+        cfg = _train_config(args, scene_file=_is_scene_file(src))
+    ds = _load_input(src, cfg, out, cache=args.cache, progress=not args.quiet)
     trainer = Trainer(ds, cfg, out, progress=not args.quiet)
     try:
         metrics = trainer.run(resume=args.resume)
     except TrainingDiverged as e:
         print(f"mi-gs: error: {e}", file=sys.stderr)
         return 3
+    if ds.layout == "mitsuba":
+        from .data.mitsuba_scene import write_gaussian_scene
+
+        cam = (ds.test or ds.train)[0].camera
+        write_gaussian_scene(out / "gaussians.xml", "point_cloud.ply", cam, ds.color_space, ds.background)
     print(json.dumps({"output": str(out), **metrics["mean"], "gaussians": metrics["gaussians"],
                       "training_seconds": metrics["training_seconds"]}, indent=2))
     return 0
+
+
+def _load_input(src: Path, cfg, out: Path, cache: str | None = None, progress: bool = True):
+    """The dataset of a scene folder, or of a Mitsuba scene file (references cached in ``cache`` or
+    OUTDIR/references)."""
+    d = cfg.data
+    if _is_scene_file(src):
+        from .data.mitsuba_scene import load_scene_dataset
+
+        return load_scene_dataset(src, cfg.scene, cache_root=Path(cache) if cache else out / "references",
+                                  background=d.background, test_every=d.test_every, seed=d.seed, progress=progress,
+                                  log=lambda line: print(line, file=sys.stderr, flush=True))
+    from .data.dataset import load_dataset
+
+    return load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
+                        random_points=d.random_points, seed=d.seed)
 
 
 # ------------------------------------------------------------------------------------------------------ eval
@@ -237,11 +287,20 @@ def cmd_eval(args) -> int:
     saved = json.loads(cfg_path.read_text())
     cfg = TrainConfig.from_dict(saved["train"])
     d = cfg.data
-    ds = load_dataset(args.dataset or saved["dataset"], resolution=d.resolution, background=d.background,
-                      test_every=d.test_every, random_points=0)
+    src = Path(args.dataset or saved["dataset"])
+    if _is_scene_file(src):
+        import dataclasses
+
+        # the references cached by the run (rendered again only if they are gone); no initial points needed
+        cfg = dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, init="random", init_points=1))
+        refs = saved.get("references")
+        ds = _load_input(src, cfg, out, cache=str(Path(refs).parent) if refs else None)
+    else:
+        ds = load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
+                          random_points=0)
     views = ds.test if ds.test else ds.train
     g = Gaussians.load_ply(ply)
-    scores, note = evaluate_views(g, views, tuple(ds.background), cfg=cfg.raster)
+    scores, note = evaluate_views(g, views, tuple(ds.background), cfg=cfg.raster, color_space=ds.color_space)
     result = {"split": "test" if ds.test else "train", "mean": summarize(scores),
               "views": {s.name: {"psnr": s.psnr, "ssim": s.ssim, **({"lpips": s.lpips} if s.lpips is not None
                                                                   else {})} for s in scores},
@@ -294,11 +353,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--sensor", type=int, default=0, help="sensor index (scene .xml only)")
     s.set_defaults(func=cmd_render)
 
-    s = sub.add_parser("optimize", help="fit Gaussians to a COLMAP / Blender / instant-ngp scene folder")
-    s.add_argument("scene", help="scene folder")
+    s = sub.add_parser("optimize", help="fit Gaussians to a COLMAP / Blender / instant-ngp scene folder, or to "
+                                        "path-traced references of a Mitsuba scene .xml")
+    s.add_argument("scene", help="scene folder, or Mitsuba scene file (.xml)")
     s.add_argument("-o", "--output", required=True, help="output folder")
     s.add_argument("--iterations", type=int, default=None, help="default 30000 (the paper's)")
-    s.add_argument("-r", "--resolution", type=int, default=1, help="divide the image size by this")
+    s.add_argument("-r", "--resolution", type=int, nargs="+", default=None,
+                   help="scene folder: divide the image size by this (default 1); scene .xml: the film size of "
+                        "generated cameras, W [H] (default: the scene's sensor's, else 256)")
     s.add_argument("--white-background", action="store_true", help="composite RGBA images over white")
     s.add_argument("--background", type=float, nargs="+", default=None, help="background colour (1 or 3 values)")
     s.add_argument("--random-background", action="store_true", help="random background colour per iteration")
@@ -310,7 +372,29 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--checkpoint-every", type=int, default=1000)
     s.add_argument("--eval-every", type=int, default=1000, help="test PSNR for the curves every N iterations")
     s.add_argument("--resume", action="store_true", help="continue the run saved in the output folder")
+    s.add_argument("--overwrite", action="store_true",
+                   help="start a new run in an output folder that holds one (cached references are kept)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
+    g = s.add_argument_group("Mitsuba scene (.xml) input")
+    g.add_argument("--rig", choices=("auto", "sensors", "hemisphere", "sphere"), default=None,
+                   help="cameras: the scene's sensors, or generated around its bounding box (default auto: the "
+                        "sensors if the scene declares several, else hemisphere)")
+    g.add_argument("--views", type=int, default=None, help="generated training cameras (default 64)")
+    g.add_argument("--test-views", type=int, default=None, help="generated held-out cameras (default 8)")
+    g.add_argument("--radius", type=float, default=None,
+                   help="rig radius (default: the bounding sphere fills the view)")
+    g.add_argument("--fov", type=float, default=None, help="horizontal field of view in degrees (default: the "
+                                                           "sensor's, else 40)")
+    g.add_argument("--up", type=float, nargs=3, default=None, help="world up (default: the sensor's, else 0 1 0)")
+    g.add_argument("--spp", type=int, default=None, help="reference samples per pixel (default: the sensor's, "
+                                                         "else 128)")
+    g.add_argument("--linear", action="store_true",
+                   help="train on linear radiance (default: on the sRGB-encoded references)")
+    g.add_argument("--init", choices=("shapes", "random", "sfm"), default=None,
+                   help="initial points: sampled on the shapes and coloured by the references (default), random "
+                        "in the bounding box, or structure from motion")
+    g.add_argument("--init-points", type=int, default=None, help="initial points for shapes/random (default 50000)")
+    g.add_argument("--cache", default=None, help="folder for the cached references (default OUTDIR/references)")
     s.set_defaults(func=cmd_optimize)
 
     s = sub.add_parser("eval", help="recompute the metrics of a saved run on its test views")

@@ -82,6 +82,28 @@ class DensifyConfig:
 
 
 @dataclass(frozen=True)
+class SceneConfig:
+    """``mi-gs optimize scene.xml``: how a Mitsuba scene becomes training views (``mi_gaussians.data.mitsuba_scene``).
+
+    ``None`` means "from the scene's own (first) sensor", falling back to the value in the comment."""
+
+    rig: str = "auto"                        # 'auto' (the scene's sensors if it declares several, else
+                                             # 'hemisphere'), 'sensors', 'hemisphere' or 'sphere'
+    views: int = 64                          # generated training cameras
+    test_views: int = 8                      # generated held-out cameras (declared sensors: every test_every-th)
+    resolution: tuple[int, int] | None = None   # film size (width, height); fallback 256 x 256
+    fov: float | None = None                 # horizontal field of view in degrees; fallback 40
+    radius: float | None = None              # rig radius; None: the bounding sphere fills the view
+    up: tuple[float, float, float] | None = None  # world up; None: the sensor's up snapped to an axis, else +Y
+    elevation: tuple[float, float] = (10.0, 75.0)  # hemisphere rig: camera elevation range in degrees
+    spp: int | None = None                   # reference samples per pixel; fallback 128
+    linear: bool = False                     # train on linear radiance (default: on the sRGB-encoded references)
+    init: str = "shapes"                     # 'shapes' (Mitsuba shape sampling, coloured by the references),
+                                             # 'random' (uniform in the bounding box) or 'sfm' (pycolmap)
+    init_points: int = 50_000                # points to sample ('shapes', 'random')
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     """Everything a training run needs; saved with its outputs (``config.json``) and read back by ``--resume``."""
 
@@ -89,6 +111,7 @@ class TrainConfig:
     optim: OptimConfig = OptimConfig()
     densify: DensifyConfig = DensifyConfig()
     raster: RasterConfig = RasterConfig()
+    scene: SceneConfig = SceneConfig()       # used only when the input is a Mitsuba scene file
     seed: int = 0
     checkpoint_every: int = 1000             # iterations between checkpoints (and the last iteration)
     eval_every: int = 1000                   # iterations between test-set evaluations for the curves (0: only at the end)
@@ -113,8 +136,8 @@ class TrainConfig:
                 default = getattr(kind(), k)
                 if dataclasses.is_dataclass(default):
                     kw[k] = build(type(default), v)
-                elif isinstance(default, tuple):
-                    kw[k] = tuple(v)
+                elif isinstance(default, tuple) or isinstance(v, list):   # (JSON gives lists)
+                    kw[k] = None if v is None else tuple(v)
                 else:
                     kw[k] = v
             return kind(**kw)

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import RasterConfig
+from .imwrite import linear_to_srgb
 from .metrics import lpips_available, lpips_vgg, psnr, ssim_np
 from .model.gaussians import Gaussians
 from .raster.rasterize import render
@@ -18,15 +19,26 @@ class ViewScore:
     psnr: float
     ssim: float
     lpips: float | None = None
-    render: np.ndarray | None = field(default=None, repr=False)   # (H, W, 3) float32, as rendered
+    render: np.ndarray | None = field(default=None, repr=False)   # (H, W, 3) float32, as rendered (>= 0)
     target: np.ndarray | None = field(default=None, repr=False)
+
+
+def display(img: np.ndarray, color_space: str = "srgb") -> np.ndarray:
+    """What the metrics compare: the display-encoded image in [0, 1] (linear images are sRGB-encoded first)."""
+    img = np.asarray(img, dtype=np.float32)
+    if color_space == "linear":
+        img = linear_to_srgb(np.maximum(img, 0.0))
+    return np.clip(img, 0.0, 1.0)
 
 
 def evaluate_views(g: Gaussians, views, background, sh_degree: int | None = None,
                    cfg: RasterConfig = RasterConfig(), keep_images: bool = False, with_lpips: bool = True,
-                   targets: dict | None = None) -> tuple[list[ViewScore], str | None]:
+                   targets: dict | None = None, color_space: str = "srgb") -> tuple[list[ViewScore], str | None]:
     """Scores per view and a note on LPIPS (None when it was computed).
 
+    Metrics compare display images (:func:`display`): renders and references clipped to [0, 1] as the reference
+    scores ``clamp(render, 0, 1)``; with ``color_space='linear'`` (models of linear radiance) both are sRGB-encoded
+    first, so that PSNR means the same for a model trained on radiance and one trained on encoded values.
     ``targets`` optionally maps view names to already-loaded images (avoids decoding them again)."""
     use_lpips, note = lpips_available() if with_lpips else (False, "LPIPS not requested")
     scores = []
@@ -34,11 +46,10 @@ def evaluate_views(g: Gaussians, views, background, sh_degree: int | None = None
         target = targets[v.name] if targets is not None and v.name in targets else v.load_image()
         img = np.array(render(g, v.camera, background=background, sh_degree=sh_degree, cfg=cfg).rgb,
                        dtype=np.float32).reshape(target.shape)
-        img = np.clip(img, 0.0, 1.0)           # the reference scores clamp(render, 0, 1)
-        s = ViewScore(name=v.name, psnr=psnr(img, target), ssim=ssim_np(img, target),
-                      lpips=lpips_vgg(img, target) if use_lpips else None)
+        a, b = display(img, color_space), display(target, color_space)
+        s = ViewScore(name=v.name, psnr=psnr(a, b), ssim=ssim_np(a, b), lpips=lpips_vgg(a, b) if use_lpips else None)
         if keep_images:
-            s.render, s.target = img, target
+            s.render, s.target = np.maximum(img, 0.0), target
         scores.append(s)
     return scores, (None if use_lpips else note)
 

@@ -30,12 +30,12 @@ def write_view_outputs(out_dir: Path, scores, color_space: str) -> None:
         stem = Path(s.name).stem
         write_image(out_dir / "renders" / f"{stem}.exr", s.render, color_space)
         write_image(out_dir / "renders" / f"{stem}.png", s.render, color_space)
-        both = side_by_side(s.render, s.target)
-        if color_space == "linear":
+        ref, img = s.target, s.render
+        if color_space == "linear":     # compare what a person sees: the sRGB-encoded images
             from .imwrite import linear_to_srgb
 
-            both = linear_to_srgb(both)
-        write_png(out_dir / "compare" / f"{stem}.png", both)
+            ref, img = linear_to_srgb(np.maximum(ref, 0.0)), linear_to_srgb(np.maximum(img, 0.0))
+        write_png(out_dir / "compare" / f"{stem}.png", side_by_side(img, ref))
 
 
 def write_json(path: Path, data: dict) -> None:

@@ -8,6 +8,7 @@ import mitsuba as mi
 from mi_gaussians.config import RasterConfig
 from mi_gaussians.data.camera import Camera
 from mi_gaussians.model.sh import num_sh_coeffs
+from mi_gaussians.raster.mathops import fmax
 from mi_gaussians.raster.projection import GaussianArrays
 from mi_gaussians.raster.rasterize import render_arrays
 
@@ -37,6 +38,11 @@ def gaussians_from_ellipsoids(shape, max_degree: int = 3) -> GaussianArrays:
     return GaussianArrays(means=mi.Point3f(f[0], f[1], f[2]), sigmas=mi.Vector3f(f[3], f[4], f[5]),
                           quats=mi.Vector4f(f[9], f[6], f[7], f[8]), opacity=mi.Float(opac),
                           sh_dc=dr.gather(mi.Vector3f, sh, idx * k), sh_rest=rest, sh_degree=degree)
+
+
+def srgb_to_linear(x: mi.Float) -> mi.Float:
+    """The sRGB transfer function inverted (differentiable; the power curve continues above 1)."""
+    return dr.select(x <= 0.04045, x / 12.92, dr.power((fmax(x, 0.04045) + 0.055) / 1.055, 2.4))
 
 
 def _concat(parts: list[GaussianArrays]) -> GaussianArrays:
@@ -75,6 +81,12 @@ class GaussianSplattingIntegrator(mi.CppADIntegrator):
      * - depth_aov
        - |bool|
        - Append the expected depth (camera-space z, 0 where nothing was hit) as the last channel. (Default: false)
+
+     * - color_space
+       - |string|
+       - What the Gaussians' colours are: ``linear`` radiance, or ``srgb``-encoded values (3DGS models fitted to
+         photographs, and ``mi-gs optimize scene.xml`` models without ``--linear``), which are decoded to linear
+         radiance after blending (background included) so that the film holds radiance. (Default: ``linear``)
 
     Rasterizes the 3D Gaussians of every ``ellipsoids`` shape in the scene (a 3DGS ``point_cloud.ply`` loaded by
     Mitsuba's own ``ellipsoids`` shape) with the tile-sorted, front-to-back alpha blending of Kerbl et al. 2023
@@ -116,6 +128,9 @@ class GaussianSplattingIntegrator(mi.CppADIntegrator):
         if self.sh_degree < -1 or self.sh_degree > 3:
             raise ValueError(f"gaussian_splatting: sh_degree must be -1 or in 0..3, got {self.sh_degree}")
         self.depth_aov = bool(props.get("depth_aov", False))
+        self.color_space = str(props.get("color_space", "linear"))
+        if self.color_space not in ("linear", "srgb"):
+            raise ValueError(f"gaussian_splatting: color_space must be 'linear' or 'srgb', got {self.color_space!r}")
         self.cfg = RasterConfig()
 
     # ------------------------------------------------------------------ helpers
@@ -138,15 +153,18 @@ class GaussianSplattingIntegrator(mi.CppADIntegrator):
     def _image(self, scene, sensor) -> mi.TensorXf:
         cam = Camera.from_mitsuba(sensor)
         out = render_arrays(self._gaussians(scene), cam, self.background, self.cfg)
-        chans = [out.rgb]
+        rgb = out.rgb
+        if self.color_space == "srgb":
+            rgb = mi.TensorXf(srgb_to_linear(rgb.array), rgb.shape)
+        chans = [rgb]
         if sensor.film().base_channels_count() >= 4:
             chans.append(out.alpha)
         if self.depth_aov:
             chans.append(out.depth)
         if len(chans) == 1:
-            return out.rgb
+            return rgb
         H, W = cam.height, cam.width
-        flat = [dr.gather(mi.Float, out.rgb.array, dr.arange(mi.UInt32, H * W) * 3 + c) for c in range(3)]
+        flat = [dr.gather(mi.Float, rgb.array, dr.arange(mi.UInt32, H * W) * 3 + c) for c in range(3)]
         flat += [t.array for t in chans[1:]]
         n = len(flat)
         buf = dr.zeros(mi.Float, H * W * n)
@@ -179,7 +197,7 @@ class GaussianSplattingIntegrator(mi.CppADIntegrator):
 
     def to_string(self):
         return (f"GaussianSplattingIntegrator[background={self.background}, sh_degree={self.sh_degree}, "
-                f"depth_aov={self.depth_aov}]")
+                f"depth_aov={self.depth_aov}, color_space={self.color_space!r}]")
 
 
 def register() -> list[str]:

@@ -70,7 +70,7 @@ class Dataset:
     """A loaded scene: train/test views, initial points, background, and the colour encoding of the images."""
 
     root: Path
-    layout: str                          # 'colmap' | 'blender' | 'ngp'
+    layout: str                          # 'colmap' | 'blender' | 'ngp' | 'mitsuba' (a scene file, data/mitsuba_scene.py)
     train: list[View]
     test: list[View]
     points_xyz: np.ndarray | None = field(repr=False)   # (M, 3) float32
@@ -78,6 +78,7 @@ class Dataset:
     background: np.ndarray = field(repr=False)          # (3,) float32
     color_space: str = "srgb"            # 'srgb' (PNG/JPEG values / 255, not linearized) or 'linear' (EXR)
     resolution: int = 1
+    references: Path | None = None       # Mitsuba scenes: the folder of the cached reference renders
 
     @property
     def views(self) -> list[View]:

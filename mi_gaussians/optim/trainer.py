@@ -197,7 +197,8 @@ class Trainer:
     def _test_psnr(self) -> float | None:
         if not self.ds.test:
             return None
-        scores, _ = evaluate_views(self.g, self.ds.test, self.background, cfg=self.cfg.raster, with_lpips=False)
+        scores, _ = evaluate_views(self.g, self.ds.test, self.background, cfg=self.cfg.raster, with_lpips=False,
+                                   color_space=self.ds.color_space)
         return summarize(scores)["psnr"]
 
     def run(self, resume: bool = False) -> dict:
@@ -207,7 +208,10 @@ class Trainer:
         self.out.mkdir(parents=True, exist_ok=True)
         if resume:
             self.load_checkpoint()
-        report.write_json(self.out / "config.json", {"dataset": str(self.ds.root), "train": cfg.to_dict()})
+        saved = {"dataset": str(self.ds.root), "train": cfg.to_dict()}
+        if self.ds.references is not None:
+            saved["references"] = str(self.ds.references)
+        report.write_json(self.out / "config.json", saved)
         total = cfg.optim.iterations
         bar = tqdm(total=total, initial=self.step, disable=not self.progress, unit="it", dynamic_ncols=True)
         ema, last_psnr = None, (self.history.test_psnr[-1] if self.history.test_psnr else None)
@@ -246,7 +250,8 @@ class Trainer:
         """Final outputs: PLY, test renders and comparisons, metrics.json, curves."""
         self.g.save_ply(self.out / "point_cloud.ply")
         views = self.ds.test if self.ds.test else self.ds.train[:1]
-        scores, note = evaluate_views(self.g, views, self.background, cfg=self.cfg.raster, keep_images=True)
+        scores, note = evaluate_views(self.g, views, self.background, cfg=self.cfg.raster, keep_images=True,
+                                      color_space=self.ds.color_space)
         report.write_view_outputs(self.out, scores, self.ds.color_space)
         metrics = {
             "split": "test" if self.ds.test else "train (no test views)",
