@@ -214,7 +214,6 @@ def _train_config(args, scene_file: bool = False):
 
 def cmd_optimize(args) -> int:
     from .config import TrainConfig
-    from .data.dataset import load_dataset
     from .optim.trainer import Trainer, TrainingDiverged
 
     out = Path(args.output)

@@ -26,7 +26,6 @@ def loop_ad_render(params: dict, cam, weights: dict, background=(0.0, 0.0, 0.0))
     for k in NAMES:
         dr.enable_grad(getattr(g, k))
     proj = project(GaussianArrays.from_gaussians(g, g.sh_degree), ViewParams.from_camera(cam), cfg)
-    n = g.n
     valid = np.array(proj.tile_count) > 0
     depth = np.array(dr.detach(proj.depth))
     order_np = np.array([i for i in np.argsort(depth, kind="stable") if valid[i]], dtype=np.uint32)

@@ -3,7 +3,6 @@ plugins install as ``mi_gaussians.plugins`` (not a generic top-level ``plugins``
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import subprocess
 import sys

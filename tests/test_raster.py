@@ -8,7 +8,6 @@ brute-force loop. Also: no NaN/Inf anywhere, tile-grid independence, and no reco
 from __future__ import annotations
 
 import drjit as dr
-import mitsuba as mi
 import numpy as np
 import pytest
 
