@@ -340,9 +340,11 @@ def test_optimize_scene_xml_end_to_end(tmp_path):
     assert "rendering" not in res.stderr
     # a second run into the same folder needs --overwrite, and renders nothing
     assert_one_line_error(run(*args), "--overwrite")
-    res = run(*rig, "--iterations", 20, "--overwrite")
+    res = run(*rig, "--iterations", 20, "--overwrite", "--linear")
     assert res.returncode == 0, res.stderr
     assert "reusing the 19 cached references" in res.stderr
+    assert json.loads((out / "config.json").read_text())["train"]["scene"]["linear"] is True
+    assert 'name="color_space" value="linear"' in (out / "gaussians.xml").read_text()
 
 
 def test_linear_models_are_scored_on_display_images():
