@@ -123,7 +123,15 @@ def cmd_render(args) -> int:
 
         from .imwrite import write_image
 
-        scene = mi.load_file(str(src))
+        from .data.mitsuba_scene import parse_defines
+
+        try:
+            scene = mi.load_file(str(src), **parse_defines(args.define))
+        except RuntimeError as e:   # "[parser.cpp:1087] Parsing of XML file ... failed: ..."
+            import re
+
+            msg = re.sub(r"^\[[^\]]*\]\s*", "", str(e).strip())
+            raise InputError(f"{src}: {msg}") from None
         if not scene.sensors():
             raise InputError(f"{src}: the scene has no sensor")
         if args.sensor >= len(scene.sensors()):
@@ -175,6 +183,8 @@ def _scene_config(args):
         kw["resolution"] = tuple(args.resolution)
     if args.up is not None:
         kw["up"] = tuple(args.up)
+    if args.define:
+        kw["defines"] = tuple(args.define)
     return dataclasses.replace(SceneConfig(), linear=args.linear, **kw)
 
 
@@ -350,6 +360,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--alpha", action="store_true", help="write an alpha channel")
     s.add_argument("--spp", type=int, default=None, help="samples per pixel (scene .xml only)")
     s.add_argument("--sensor", type=int, default=0, help="sensor index (scene .xml only)")
+    s.add_argument("-D", "--define", action="append", default=None, metavar="KEY=VALUE",
+                   help="set a scene parameter (scene .xml only), as mitsuba -D; repeatable")
     s.set_defaults(func=cmd_render)
 
     s = sub.add_parser("optimize", help="fit Gaussians to a COLMAP / Blender / instant-ngp scene folder, or to "
@@ -394,6 +406,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "in the bounding box, or structure from motion")
     g.add_argument("--init-points", type=int, default=None, help="initial points for shapes/random (default 50000)")
     g.add_argument("--cache", default=None, help="folder for the cached references (default OUTDIR/references)")
+    g.add_argument("-D", "--define", action="append", default=None, metavar="KEY=VALUE",
+                   help="set a scene parameter (<default name=\"KEY\">), as mitsuba -D; repeatable")
     s.set_defaults(func=cmd_optimize)
 
     s = sub.add_parser("eval", help="recompute the metrics of a saved run on its test views")

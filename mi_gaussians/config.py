@@ -87,6 +87,7 @@ class SceneConfig:
 
     ``None`` means "from the scene's own (first) sensor", falling back to the value in the comment."""
 
+    defines: tuple[str, ...] = ()            # "KEY=VALUE" scene parameters (Mitsuba's -D: <default name="KEY">)
     rig: str = "auto"                        # 'auto' (the scene's sensors if it declares several, else
                                              # 'hemisphere'), 'sensors', 'hemisphere' or 'sphere'
     views: int = 64                          # generated training cameras

@@ -51,15 +51,29 @@ _GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 
 
 # ---------------------------------------------------------------------------------------------------- loading
-def load_scene(path: str | os.PathLike):
-    """``mi.load_file`` with one-line errors; the scene must have at least one shape and a finite bounding box."""
+def parse_defines(defines) -> dict[str, str]:
+    """``["KEY=VALUE", ...]`` (Mitsuba's ``-D KEY=VALUE``) -> ``{KEY: VALUE}``."""
+    out = {}
+    for d in defines or ():
+        key, sep, value = str(d).partition("=")
+        if not sep or not key.strip() or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", key.strip()):
+            raise ValueError(f"scene parameter {d!r}: expected KEY=VALUE (as Mitsuba's -D KEY=VALUE)")
+        out[key.strip()] = value
+    return out
+
+
+def load_scene(path: str | os.PathLike, defines=()):
+    """``mi.load_file`` with one-line errors; the scene must have at least one shape and a finite bounding box.
+
+    ``defines``: ``"KEY=VALUE"`` strings that set the scene's ``<default name="KEY" .../>`` parameters."""
     import mitsuba as mi
 
     p = Path(path)
     if not p.is_file():
         raise ValueError(f"{p}: scene file not found")
+    params = parse_defines(defines)
     try:
-        scene = mi.load_file(str(p))
+        scene = mi.load_file(str(p), **params)
     except RuntimeError as e:   # Mitsuba: "[parser.cpp:1087] Parsing of XML file ... failed: ..." and friends
         msg = re.sub(r"^\[[^\]]*\]\s*", "", str(e).strip().splitlines()[0] if str(e).strip() else "cannot load")
         raise ValueError(f"{p}: {msg}") from None
@@ -241,8 +255,9 @@ def scene_views(scene, path: str | os.PathLike, cfg: SceneConfig, test_every: in
 
 
 # ---------------------------------------------------------------------------------------------------- references
-def cache_key(path: str | os.PathLike, views: SceneViews) -> str:
-    """Hash of the scene file, every file it references, the cameras, the sample count and the Mitsuba version."""
+def cache_key(path: str | os.PathLike, views: SceneViews, defines=()) -> str:
+    """Hash of the scene file, every file it references, its parameters (``defines``), the cameras, the sample count
+    and the Mitsuba version."""
     import mitsuba as mi
 
     h = hashlib.sha256()
@@ -252,7 +267,7 @@ def cache_key(path: str | os.PathLike, views: SceneViews) -> str:
         h.update(str(f.relative_to(p.parent) if f.is_relative_to(p.parent) else f).encode())
         h.update(hashlib.sha256(f.read_bytes()).digest())
     rig = {"train": [c.to_dict() for c in views.train], "test": [c.to_dict() for c in views.test],
-           "spp": views.spp, "mitsuba": mi.__version__}
+           "spp": views.spp, "mitsuba": mi.__version__, "defines": sorted(parse_defines(defines).items())}
     h.update(json.dumps(rig, sort_keys=True).encode())
     return h.hexdigest()[:16]
 
@@ -321,13 +336,13 @@ def load_scene_dataset(path: str | os.PathLike, cfg: SceneConfig = SceneConfig()
     from .dataset import Dataset, View
 
     p = Path(path)
-    scene = load_scene(p)
+    scene = load_scene(p, cfg.defines)
     views = scene_views(scene, p, cfg, test_every=test_every, seed=seed)
-    key = cache_key(p, views)
+    key = cache_key(p, views, cfg.defines)
     cache_dir = Path(cache_root) / key
     rig_file = cache_dir / "rig.json"
     if not rig_file.is_file():
-        rig = {"scene": str(p.resolve()), "key": key, "source": views.source, "spp": views.spp,
+        rig = {"scene": str(p.resolve()), "defines": list(cfg.defines), "key": key, "source": views.source, "spp": views.spp,
                "train": [c.to_dict() for c in views.train], "test": [c.to_dict() for c in views.test]}
         cache_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(rig_file, json.dumps(rig, indent=1) + "\n")
