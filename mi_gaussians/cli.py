@@ -195,6 +195,9 @@ def _train_config(args, scene_file: bool = False):
 
     d, o, dn = DataConfig(), OptimConfig(), DensifyConfig()
     if scene_file:
+        if args.resolution is not None and (len(args.resolution) > 2 or min(args.resolution) < 16):
+            raise InputError("for a scene .xml, --resolution is the film size in pixels, W [H] (at least 16), "
+                             f"not a divisor: got {' '.join(map(str, args.resolution))}")
         resolution, scene = 1, _scene_config(args)
     else:
         if args.resolution is not None and len(args.resolution) != 1:
@@ -222,6 +225,39 @@ def _train_config(args, scene_file: bool = False):
                        checkpoint_every=args.checkpoint_every, eval_every=args.eval_every, save_iterations=save)
 
 
+RUN_OUTPUTS = ("checkpoints", "renders", "compare", "config.json", "metrics.json", "eval.json", "history.json",
+               "curves.png", "gaussians.xml", "point_cloud.ply")
+
+
+def _clear_run(out: Path) -> None:
+    """Remove an earlier run's outputs from ``out`` (cached references stay)."""
+    import shutil
+
+    for name in RUN_OUTPUTS:
+        p = out / name
+        if p.is_dir():
+            shutil.rmtree(p)
+        elif p.exists():
+            p.unlink()
+    for p in out.glob("point_cloud_*.ply"):
+        p.unlink()
+
+
+def _saved_cache(saved: dict, out: Path) -> str | None:
+    """The cache folder of a run's references: OUTDIR/references when they are there (the folder may have moved),
+    else the folder the run recorded."""
+    refs = saved.get("references")
+    if not refs:
+        return None
+    key = Path(refs).name
+    return str(out / "references") if (out / "references" / key).is_dir() else str(Path(refs).parent)
+
+
+def _saved_key(saved: dict | None) -> str | None:
+    refs = (saved or {}).get("references")
+    return Path(refs).name if refs else None
+
+
 def cmd_optimize(args) -> int:
     from .config import TrainConfig
     from .optim.trainer import Trainer, TrainingDiverged
@@ -232,6 +268,7 @@ def cmd_optimize(args) -> int:
         raise InputError(f"{src}: not found")
     if args.resume and args.overwrite:
         raise InputError("give at most one of --resume and --overwrite")
+    saved = None
     if args.resume:
         cfg_path = out / "config.json"
         if not cfg_path.exists():
@@ -239,15 +276,15 @@ def cmd_optimize(args) -> int:
         saved = json.loads(cfg_path.read_text())
         cfg = TrainConfig.from_dict(saved["train"])
     else:
-        if (out / "checkpoints").exists() and any((out / "checkpoints").iterdir()):
-            if not args.overwrite:
-                raise InputError(f"{out}: holds an earlier run (use --resume to continue it, --overwrite to start "
-                                 "again, or another folder)")
-            import shutil
-
-            shutil.rmtree(out / "checkpoints")
+        if (out / "checkpoints").exists() and any((out / "checkpoints").iterdir()) and not args.overwrite:
+            raise InputError(f"{out}: holds an earlier run (use --resume to continue it, --overwrite to start "
+                             "again, or another folder)")
         cfg = _train_config(args, scene_file=_is_scene_file(src))
-    ds = _load_input(src, cfg, out, cache=args.cache, progress=not args.quiet)
+    cache = args.cache or (_saved_cache(saved, out) if saved else None)
+    # everything is checked (and references rendered) before an earlier run is removed
+    ds = _load_input(src, cfg, out, cache=cache, progress=not args.quiet, expect_key=_saved_key(saved))
+    if args.overwrite:
+        _clear_run(out)
     trainer = Trainer(ds, cfg, out, progress=not args.quiet)
     try:
         metrics = trainer.run(resume=args.resume)
@@ -264,7 +301,8 @@ def cmd_optimize(args) -> int:
     return 0
 
 
-def _load_input(src: Path, cfg, out: Path, cache: str | None = None, progress: bool = True):
+def _load_input(src: Path, cfg, out: Path, cache: str | None = None, progress: bool = True,
+                expect_key: str | None = None):
     """The dataset of a scene folder, or of a Mitsuba scene file (references cached in ``cache`` or
     OUTDIR/references)."""
     d = cfg.data
@@ -273,7 +311,7 @@ def _load_input(src: Path, cfg, out: Path, cache: str | None = None, progress: b
 
         return load_scene_dataset(src, cfg.scene, cache_root=Path(cache) if cache else out / "references",
                                   background=d.background, test_every=d.test_every, seed=d.seed, progress=progress,
-                                  log=lambda line: print(line, file=sys.stderr, flush=True))
+                                  log=lambda line: print(line, file=sys.stderr, flush=True), expect_key=expect_key)
     from .data.dataset import load_dataset
 
     return load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
@@ -302,8 +340,7 @@ def cmd_eval(args) -> int:
 
         # the references cached by the run (rendered again only if they are gone); no initial points needed
         cfg = dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, init="random", init_points=1))
-        refs = saved.get("references")
-        ds = _load_input(src, cfg, out, cache=str(Path(refs).parent) if refs else None)
+        ds = _load_input(src, cfg, out, cache=_saved_cache(saved, out), expect_key=_saved_key(saved))
     else:
         ds = load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
                           random_points=0)
@@ -390,7 +427,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--rig", choices=("auto", "sensors", "hemisphere", "sphere"), default=None,
                    help="cameras: the scene's sensors, or generated around its bounding box (default auto: the "
                         "sensors if the scene declares several, else hemisphere)")
-    g.add_argument("--views", type=int, default=None, help="generated training cameras (default 64)")
+    g.add_argument("--views", type=int, default=None, help="generated training cameras (default 64; --seed also "
+                                                           "picks the rig, so another seed renders new references)")
     g.add_argument("--test-views", type=int, default=None, help="generated held-out cameras (default 8)")
     g.add_argument("--radius", type=float, default=None,
                    help="rig radius (default: the bounding sphere fills the view)")

@@ -98,17 +98,38 @@ def test_cli_bad_scene_files(tmp_path):
     assert not (tmp_path / "out_syntax" / "point_cloud.ply").exists()
 
 
-def test_referenced_files_follow_includes(tmp_path):
+def test_referenced_files_resolve_like_mitsuba(tmp_path):
+    """Names resolve against the top scene's folder first (also inside included files), with $parameters."""
+    (tmp_path / "sub").mkdir()
     (tmp_path / "tex.png").write_bytes(b"x")
-    (tmp_path / "part.xml").write_text('<scene version="3.0.0"><shape type="ply">'
-                                       '<string name="filename" value="mesh.ply"/></shape></scene>')
-    (tmp_path / "mesh.ply").write_bytes(b"y")
+    (tmp_path / "mesh.ply").write_bytes(b"y")                 # next to main.xml, named from sub/part.xml
+    (tmp_path / "sub" / "local.ply").write_bytes(b"z")       # next to the including file only
+    (tmp_path / "other.ply").write_bytes(b"w")
+    (tmp_path / "sub" / "part.xml").write_text(
+        '<scene version="3.0.0"><shape type="ply"><string name="filename" value="mesh.ply"/></shape>'
+        '<shape type="ply"><string name="filename" value="local.ply"/></shape></scene>')
     main = tmp_path / "main.xml"
-    main.write_text('<scene version="3.0.0"><include filename="part.xml"/><texture type="bitmap" id="t">'
-                    '<string name="filename" value="tex.png"/></texture>'
-                    '<string name="filename" value="$unresolved"/></scene>')
-    names = [p.name for p in ms.referenced_files(main)]
-    assert names == sorted(["mesh.ply", "part.xml", "tex.png"])
+    main.write_text('<scene version="3.0.0"><default name="m" value="tex.png"/><include filename="sub/part.xml"/>'
+                    '<texture type="bitmap" id="t"><string name="filename" value="$m"/></texture>'
+                    '<string name="filename" value="$unknown"/></scene>')
+    assert sorted(p.name for p in ms.referenced_files(main)) == ["local.ply", "mesh.ply", "part.xml", "tex.png"]
+    assert "other.ply" in [p.name for p in ms.referenced_files(main, ["m=other.ply"])]
+
+
+def test_cache_key_follows_referenced_file_contents(scene_file, tmp_path):
+    tex = tmp_path / "t.png"
+    from PIL import Image
+
+    Image.new("RGB", (4, 4), (200, 10, 10)).save(tex)
+    text = scene_file.read_text().replace(
+        '<rgb name="reflectance" value="0.5"/>',
+        '<texture type="bitmap" name="reflectance"><string name="filename" value="t.png"/></texture>')
+    scene_file.write_text(text)
+    scene = ms.load_scene(scene_file)
+    v = ms.scene_views(scene, scene_file, SceneConfig(views=2, test_views=1))
+    k1 = ms.cache_key(scene_file, v)
+    Image.new("RGB", (4, 4), (10, 200, 10)).save(tex)
+    assert ms.cache_key(scene_file, v) != k1
 
 
 # ------------------------------------------------------------------------------------------------ camera rigs
@@ -222,6 +243,18 @@ def test_references_are_cached_and_keyed(tmp_path, monkeypatch):
     write_scene(p, w=16, h=16, spp=4, sky="0.2, 0.2, 0.2")
     ms.load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", progress=False)
     assert len(calls) == 9 and len(list((tmp_path / "refs").iterdir())) == 3   # an edited scene: another key
+
+
+def test_background_is_in_the_training_colour_space(tmp_path):
+    """Empty pixels of the targets show the background itself, encoded or linear, as the Gaussians are drawn over."""
+    p = write_scene(tmp_path / "scene.xml", w=16, h=16, spp=4)
+    for linear in (False, True):
+        cfg = SceneConfig(views=2, test_views=1, init="random", init_points=10, radius=6.0, linear=linear)
+        ds = ms.load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", background=(0.5, 0.25, 0.0), progress=False)
+        v = ds.train[0]
+        empty = v.load_alpha() == 0
+        assert empty.sum() > 10
+        assert np.allclose(v.load_image()[empty], [0.5, 0.25, 0.0], atol=1e-5), linear
 
 
 def test_training_targets_are_srgb_encoded_hdr(tmp_path):
@@ -345,6 +378,37 @@ def test_optimize_scene_xml_end_to_end(tmp_path):
     assert "reusing the 19 cached references" in res.stderr
     assert json.loads((out / "config.json").read_text())["train"]["scene"]["linear"] is True
     assert 'name="color_space" value="linear"' in (out / "gaussians.xml").read_text()
+
+
+def _run_in(cwd, *args):
+    import subprocess
+    import sys
+
+    exe = Path(sys.executable).parent / "mi-gs"
+    return subprocess.run([str(exe)] + [str(a) for a in args], capture_output=True, text=True, timeout=600, cwd=cwd)
+
+
+def test_runs_find_their_references(tmp_path):
+    """Relative output and cache folders, eval from elsewhere, --resume without --cache, an edited scene refused,
+    and --overwrite that fails on a bad option keeps the earlier run."""
+    p = write_scene(tmp_path / "scene.xml", w=24, h=24, spp=4)
+    common = ["--views", 6, "--test-views", 1, "--init-points", 500, "--quiet"]
+    res = _run_in(tmp_path, "optimize", "scene.xml", "-o", "rel_run", "--iterations", 20, "--cache", "refs", *common)
+    assert res.returncode == 0, res.stderr
+    run_dir = tmp_path / "rel_run"
+    assert (tmp_path / "refs").is_dir() and not (run_dir / "references").exists()
+    res = run("eval", run_dir)                                     # another working folder
+    assert res.returncode == 0 and "rendering" not in res.stderr, res.stderr
+    res = run("optimize", p, "-o", run_dir, "--resume", "--quiet")
+    assert res.returncode == 0 and "reusing the 7 cached references" in res.stderr, res.stderr
+    # a bad option with --overwrite changes nothing
+    assert_one_line_error(run("optimize", p, "-o", run_dir, "--overwrite", "-r", 2), "film size")
+    assert (run_dir / "point_cloud.ply").is_file() and (run_dir / "checkpoints" / "ckpt.npz").is_file()
+    # the scene changed: resume and eval are refused before anything is rendered
+    write_scene(p, w=24, h=24, spp=4, sky="0.1, 0.1, 0.1")
+    assert_one_line_error(run("eval", run_dir), "changed")
+    assert_one_line_error(run("optimize", p, "-o", run_dir, "--resume"), "changed")
+    assert len(list((tmp_path / "refs").iterdir())) == 1
 
 
 def test_linear_models_are_scored_on_display_images():

@@ -38,12 +38,13 @@ from typing import Callable
 import numpy as np
 
 from ..config import DataConfig, SceneConfig
-from ..imwrite import linear_to_srgb, write_exr
+from ..imwrite import linear_to_srgb, srgb_to_linear, write_exr
 from ..io_utils import atomic_write_text
 from .camera import Camera
 from .images import ImageLoader
 
 RIGS = ("auto", "sensors", "hemisphere", "sphere")
+CACHE_VERSION = 1       # bump when how references are rendered changes (sampler, seeds, filter, clip planes)
 FALLBACK_RESOLUTION = (256, 256)
 FALLBACK_FOV = 40.0
 FALLBACK_SPP = 128
@@ -91,31 +92,44 @@ def scene_bbox(scene) -> tuple[np.ndarray, np.ndarray]:
     return np.array(b.min, dtype=np.float64), np.array(b.max, dtype=np.float64)
 
 
-def referenced_files(path: str | os.PathLike) -> list[Path]:
+def referenced_files(path: str | os.PathLike, defines=()) -> list[Path]:
     """Files a scene file names with ``<string name="filename" .../>`` (and ``<include filename=...>``) that exist,
-    resolved against the scene's folder, recursively through included files; sorted, without duplicates."""
+    recursively through included files; sorted, without duplicates. ``$KEY`` parameters are replaced by ``defines``
+    or else the scene's ``<default>`` values, and relative names are resolved as Mitsuba's file resolver does: against
+    the top scene's folder first, then against the folder of the file that names them."""
+    top = Path(path).resolve()
+    params = parse_defines(defines)
     seen: set[Path] = set()
+
+    def substitute(value: str, defaults: dict) -> str:
+        return re.sub(r"\$([A-Za-z_][A-Za-z0-9_]*)", lambda m: params.get(m.group(1), defaults.get(m.group(1),
+                                                                                                   m.group(0))), value)
 
     def walk(xml: Path):
         try:
             root = ET.parse(xml).getroot()
         except (ET.ParseError, OSError):
             return
+        defaults = {el.get("name"): el.get("value", "") for el in root.iter("default")}
         for el in root.iter():
             value = None
             if el.tag == "string" and el.get("name") == "filename":
                 value = el.get("value")
             elif el.tag == "include":
                 value = el.get("filename")
-            if not value or "$" in value:
+            if not value:
                 continue
-            f = (xml.parent / value).resolve()
+            value = substitute(value, defaults)
+            for base in (top.parent, xml.parent):
+                f = (base / value).resolve()
+                if f.is_file():
+                    break
             if f.is_file() and f not in seen:
                 seen.add(f)
                 if f.suffix.lower() == ".xml":
                     walk(f)
 
-    walk(Path(path).resolve())
+    walk(top)
     return sorted(seen)
 
 
@@ -211,7 +225,11 @@ def scene_views(scene, path: str | os.PathLike, cfg: SceneConfig, test_every: in
             c = Camera.from_mitsuba(s, name=f"sensor_{i:03d}")
             if cfg.resolution:
                 r = tuple(cfg.resolution)
-                c = c.scaled(r[0], r[1] if len(r) > 1 else max(1, round(r[0] * c.height / c.width)))
+                h = max(1, round(r[0] * c.height / c.width))
+                if len(r) > 2 or (len(r) == 2 and abs(r[1] - h) > 1):
+                    raise ValueError(f"{p}: the scene's sensors keep their aspect ratio: give only a width "
+                                     f"(--resolution {r[0]} gives {r[0]}x{h})")
+                c = c.scaled(r[0], h)
             cams.append(c)
         if test_every <= 0:
             return SceneViews(cams, [], spp, "sensors")
@@ -256,18 +274,19 @@ def scene_views(scene, path: str | os.PathLike, cfg: SceneConfig, test_every: in
 
 # ---------------------------------------------------------------------------------------------------- references
 def cache_key(path: str | os.PathLike, views: SceneViews, defines=()) -> str:
-    """Hash of the scene file, every file it references, its parameters (``defines``), the cameras, the sample count
-    and the Mitsuba version."""
+    """Hash of the scene file, every file it references, its parameters (``defines``), the cameras, the sample count,
+    the Mitsuba version and variant, and :data:`CACHE_VERSION`."""
     import mitsuba as mi
 
     h = hashlib.sha256()
     p = Path(path).resolve()
     h.update(p.read_bytes())
-    for f in referenced_files(p):
+    for f in referenced_files(p, defines):
         h.update(str(f.relative_to(p.parent) if f.is_relative_to(p.parent) else f).encode())
         h.update(hashlib.sha256(f.read_bytes()).digest())
     rig = {"train": [c.to_dict() for c in views.train], "test": [c.to_dict() for c in views.test],
-           "spp": views.spp, "mitsuba": mi.__version__, "defines": sorted(parse_defines(defines).items())}
+           "spp": views.spp, "mitsuba": mi.__version__, "variant": mi.variant(), "version": CACHE_VERSION,
+           "defines": sorted(parse_defines(defines).items())}
     h.update(json.dumps(rig, sort_keys=True).encode())
     return h.hexdigest()[:16]
 
@@ -279,10 +298,16 @@ def _multijitter_count(spp: int) -> int:
 
 
 def render_reference(scene, cam: Camera, spp: int, seed: int) -> np.ndarray:
-    """One path-traced reference: (H, W, 4) float32 linear RGB + alpha (box filter), with the scene's integrator."""
+    """One path-traced reference: (H, W, 4) float32 linear RGB + alpha (box filter), with the scene's integrator.
+
+    The clip planes follow the scene's size: near 1e-4 and far 10 times the farthest bounding-box corner."""
     import mitsuba as mi
 
-    d = cam.to_mitsuba()
+    lo, hi = scene_bbox(scene)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    far = 10.0 * float(np.linalg.norm(corners - cam.center, axis=1).max())
+    diag = float(np.linalg.norm(hi - lo))
+    d = cam.to_mitsuba(near_clip=max(1e-4 * diag, 1e-7), far_clip=max(far, 1e-3))
     d["sampler"] = {"type": "multijitter", "sample_count": _multijitter_count(spp)}
     sensor = mi.load_dict(d)
     img = np.array(mi.render(scene, sensor=sensor, spp=_multijitter_count(spp), seed=seed), dtype=np.float32)
@@ -330,8 +355,11 @@ class EncodedLoader:
 # ---------------------------------------------------------------------------------------------------- dataset
 def load_scene_dataset(path: str | os.PathLike, cfg: SceneConfig = SceneConfig(), cache_root: str | os.PathLike = ".",
                        background=(0.0, 0.0, 0.0), test_every: int = DataConfig().test_every, seed: int = 0,
-                       progress: bool = True, log: Callable[[str], None] | None = None):
-    """Load ``path``, make its cameras, render (or reuse) the references, initialize points: a ``Dataset``."""
+                       progress: bool = True, log: Callable[[str], None] | None = None, expect_key: str | None = None):
+    """Load ``path``, make its cameras, render (or reuse) the references, initialize points: a ``Dataset``.
+
+    ``expect_key``: the references key of an earlier run (``--resume``, ``mi-gs eval``); a scene that no longer
+    gives it is refused before anything is rendered."""
     from . import scene_init
     from .dataset import Dataset, View
 
@@ -339,6 +367,9 @@ def load_scene_dataset(path: str | os.PathLike, cfg: SceneConfig = SceneConfig()
     scene = load_scene(p, cfg.defines)
     views = scene_views(scene, p, cfg, test_every=test_every, seed=seed)
     key = cache_key(p, views, cfg.defines)
+    if expect_key is not None and key != expect_key:
+        raise ValueError(f"{p}: the scene, a file it references or its parameters changed since the run's references "
+                         f"were rendered (key {key}, the run's {expect_key}); start a new run")
     cache_dir = Path(cache_root) / key
     rig_file = cache_dir / "rig.json"
     if not rig_file.is_file():
@@ -347,15 +378,20 @@ def load_scene_dataset(path: str | os.PathLike, cfg: SceneConfig = SceneConfig()
         cache_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(rig_file, json.dumps(rig, indent=1) + "\n")
     paths = render_references(scene, views, cache_dir, progress=progress, log=log)
+    # ``background`` is in the training colour space (what the Gaussians are drawn over): the references (linear,
+    # premultiplied alpha) are composited over its linear value, so that encoded targets show ``background`` itself
     bg = tuple(float(b) for b in np.asarray(background, dtype=np.float64).reshape(3))
+    bg_linear = bg if cfg.linear else tuple(float(b) for b in srgb_to_linear(np.asarray(bg, np.float32)))
 
     def view(c: Camera):
-        loader = ImageLoader((c.width, c.height), (c.width, c.height), bg)
+        loader = ImageLoader((c.width, c.height), (c.width, c.height), bg_linear)
         return View(c.name, c, paths[c.name], loader if cfg.linear else EncodedLoader(loader))
 
     train, test = [view(c) for c in views.train], [view(c) for c in views.test]
-    xyz, rgb = scene_init.initial_points(scene, cfg.init, cfg.init_points, train, cache_dir, seed=seed,
-                                         linear=cfg.linear, log=log)
+    # (SfM runs on the composited training images: its cache depends on the background and the colour space)
+    sfm_tag = "_".join(f"{b:.4g}" for b in bg) + ("_linear" if cfg.linear else "")
+    xyz, rgb = scene_init.initial_points(scene, cfg.init, cfg.init_points, train, cache_dir / f"sfm_{sfm_tag}",
+                                         seed=seed, linear=cfg.linear, log=log)
     return Dataset(root=p, layout="mitsuba", train=train, test=test, points_xyz=xyz, points_rgb=rgb,
                    background=np.asarray(bg, dtype=np.float32), color_space="linear" if cfg.linear else "srgb",
                    references=cache_dir)

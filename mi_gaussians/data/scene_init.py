@@ -31,9 +31,10 @@ from . import pointcloud as _pc
 INIT_METHODS = ("shapes", "random", "sfm")
 
 
-def initial_points(scene, method: str, n: int, train_views, cache_dir: Path, seed: int = 0, linear: bool = False,
+def initial_points(scene, method: str, n: int, train_views, sfm_dir: Path, seed: int = 0, linear: bool = False,
                    log: Callable[[str], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(xyz (M, 3) float32, rgb (M, 3) float32) by ``method`` (see the module docstring)."""
+    """(xyz (M, 3) float32, rgb (M, 3) float32) by ``method`` (see the module docstring); ``sfm_dir``: the work
+    and cache folder of the ``sfm`` method."""
     if method not in INIT_METHODS:
         raise ValueError(f"unknown initialization {method!r} (expected one of {', '.join(INIT_METHODS)})")
     if method != "sfm" and n < 1:
@@ -51,7 +52,7 @@ def initial_points(scene, method: str, n: int, train_views, cache_dir: Path, see
             raise ValueError("no point sampled on the scene's shapes is visible from a training camera "
                              "(check the cameras, or use --init random)")
         return xyz[seen], rgb[seen]
-    return sfm_points(train_views, cache_dir / "sfm", linear=linear, log=log)
+    return sfm_points(train_views, sfm_dir, linear=linear, log=log)
 
 
 # ---------------------------------------------------------------------------------------------------- shapes

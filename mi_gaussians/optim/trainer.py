@@ -208,9 +208,9 @@ class Trainer:
         self.out.mkdir(parents=True, exist_ok=True)
         if resume:
             self.load_checkpoint()
-        saved = {"dataset": str(self.ds.root), "train": cfg.to_dict()}
+        saved = {"dataset": str(Path(self.ds.root).resolve()), "train": cfg.to_dict()}
         if self.ds.references is not None:
-            saved["references"] = str(self.ds.references)
+            saved["references"] = str(Path(self.ds.references).resolve())
         report.write_json(self.out / "config.json", saved)
         total = cfg.optim.iterations
         bar = tqdm(total=total, initial=self.step, disable=not self.progress, unit="it", dynamic_ncols=True)
