@@ -123,15 +123,9 @@ def cmd_render(args) -> int:
 
         from .imwrite import write_image
 
-        from .data.mitsuba_scene import parse_defines
+        from .data.mitsuba_scene import load_file
 
-        try:
-            scene = mi.load_file(str(src), **parse_defines(args.define))
-        except RuntimeError as e:   # "[parser.cpp:1087] Parsing of XML file ... failed: ..."
-            import re
-
-            msg = re.sub(r"^\[[^\]]*\]\s*", "", str(e).strip())
-            raise InputError(f"{src}: {msg}") from None
+        scene = load_file(src, args.define)
         if not scene.sensors():
             raise InputError(f"{src}: the scene has no sensor")
         if args.sensor >= len(scene.sensors()):

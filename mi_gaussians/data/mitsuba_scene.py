@@ -63,8 +63,8 @@ def parse_defines(defines) -> dict[str, str]:
     return out
 
 
-def load_scene(path: str | os.PathLike, defines=()):
-    """``mi.load_file`` with one-line errors; the scene must have at least one shape and a finite bounding box.
+def load_file(path: str | os.PathLike, defines=()):
+    """``mi.load_file`` with one-line errors naming the file (Mitsuba's "[parser.cpp:...]" prefix removed).
 
     ``defines``: ``"KEY=VALUE"`` strings that set the scene's ``<default name="KEY" .../>`` parameters."""
     import mitsuba as mi
@@ -74,10 +74,16 @@ def load_scene(path: str | os.PathLike, defines=()):
         raise ValueError(f"{p}: scene file not found")
     params = parse_defines(defines)
     try:
-        scene = mi.load_file(str(p), **params)
+        return mi.load_file(str(p), **params)
     except RuntimeError as e:   # Mitsuba: "[parser.cpp:1087] Parsing of XML file ... failed: ..." and friends
         msg = re.sub(r"^\[[^\]]*\]\s*", "", str(e).strip().splitlines()[0] if str(e).strip() else "cannot load")
         raise ValueError(f"{p}: {msg}") from None
+
+
+def load_scene(path: str | os.PathLike, defines=()):
+    """:func:`load_file` for fitting: the scene must also have at least one shape and a finite bounding box."""
+    p = Path(path)
+    scene = load_file(p, defines)
     if not scene.shapes():
         raise ValueError(f"{p}: the scene has no shapes (nothing to fit Gaussians to)")
     bbox = scene.bbox()
