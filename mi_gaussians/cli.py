@@ -263,6 +263,8 @@ def cmd_optimize(args) -> int:
     if args.resume and args.overwrite:
         raise InputError("give at most one of --resume and --overwrite")
     saved = None
+    if args.resume and args.settings:
+        raise InputError("--set cannot change a run being resumed (its settings are in OUTDIR/config.json)")
     if args.resume:
         cfg_path = out / "config.json"
         if not cfg_path.exists():
@@ -274,6 +276,10 @@ def cmd_optimize(args) -> int:
             raise InputError(f"{out}: holds an earlier run (use --resume to continue it, --overwrite to start "
                              "again, or another folder)")
         cfg = _train_config(args, scene_file=_is_scene_file(src))
+        try:
+            cfg = cfg.with_settings(args.settings or ())
+        except ValueError as e:
+            raise InputError(str(e)) from None
     cache = args.cache or (_saved_cache(saved, out) if saved else None)
     # everything is checked (and references rendered) before an earlier run is removed
     ds = _load_input(src, cfg, out, cache=cache, progress=not args.quiet, expect_key=_saved_key(saved))
@@ -411,6 +417,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--random-points", type=int, default=None,
                    help="initial random points for layouts without SfM points (default 100000)")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--set", action="append", default=None, metavar="SECTION.FIELD=VALUE", dest="settings",
+                   help="set any field of the training configuration (mi_gaussians/config.py), applied after the "
+                        "other options, e.g. --set densify.min_opacity=0.1 --set optim.feature_lr=0.005; repeatable")
     s.add_argument("--checkpoint-every", type=int, default=1000)
     s.add_argument("--eval-every", type=int, default=1000, help="test PSNR for the curves every N iterations")
     s.add_argument("--resume", action="store_true", help="continue the run saved in the output folder")

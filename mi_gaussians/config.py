@@ -144,3 +144,86 @@ class TrainConfig:
             return kind(**kw)
 
         return build(cls, d)
+
+    def with_settings(self, assignments) -> "TrainConfig":
+        """A copy with ``"section.field=value"`` (or ``"field=value"`` for top-level fields) assignments applied,
+        each value parsed as its field's type: ``--set densify.min_opacity=0.1 --set data.background=1,1,1``.
+        Raises ValueError with a one-line message for an unknown name or a value of the wrong type."""
+        import dataclasses
+
+        cfg = self
+        for text in assignments:
+            key, sep, value = str(text).partition("=")
+            key = key.strip()
+            if not sep or not key:
+                raise ValueError(f"setting {text!r}: expected NAME=VALUE, e.g. densify.min_opacity=0.1")
+            path = key.split(".")
+            if len(path) > 2:
+                raise ValueError(f"setting {key!r}: expected SECTION.FIELD or FIELD")
+            owner = cfg if len(path) == 1 else getattr(cfg, path[0], None)
+            if len(path) == 2 and not (dataclasses.is_dataclass(owner) and path[0] in _field_names(type(cfg))):
+                raise ValueError(f"setting {key!r}: no section {path[0]!r} (sections: "
+                                 f"{', '.join(f for f in _field_names(type(cfg)) if dataclasses.is_dataclass(getattr(cfg, f)))})")
+            name = path[-1]
+            if len(path) == 1 and name in _field_names(type(cfg)) and dataclasses.is_dataclass(getattr(cfg, name)):
+                raise ValueError(f"setting {key!r}: {name} is a section, set one of its fields ({name}.FIELD=VALUE)")
+            if name not in _field_names(type(owner)) or dataclasses.is_dataclass(getattr(owner, name)):
+                fields = [f for f in _field_names(type(owner)) if not dataclasses.is_dataclass(getattr(owner, f))]
+                raise ValueError(f"setting {key!r}: no such field (fields{' of ' + path[0] if len(path) == 2 else ''}:"
+                                 f" {', '.join(fields)})")
+            parsed = _parse_value(_field_types(type(owner))[name], value.strip(), key)
+            if isinstance(parsed, (int, float)) and not isinstance(parsed, bool) and parsed < 0:
+                raise ValueError(f"setting {key!r}: must not be negative, got {parsed}")
+            owner = dataclasses.replace(owner, **{name: parsed})
+            cfg = owner if len(path) == 1 else dataclasses.replace(cfg, **{path[0]: owner})
+        return cfg
+
+
+def _field_names(kind) -> list[str]:
+    import dataclasses
+
+    return [f.name for f in dataclasses.fields(kind)]
+
+
+def _field_types(kind) -> dict:
+    import typing
+
+    return typing.get_type_hints(kind)
+
+
+def _parse_value(kind, text: str, key: str):
+    """``text`` as a value of the type ``kind`` (bool, int, float, str, tuples of those, optionally ``| None``)."""
+    import types
+    import typing
+
+    args = typing.get_args(kind)
+    if isinstance(kind, types.UnionType) or typing.get_origin(kind) is typing.Union:
+        if text.lower() == "none" and type(None) in args:
+            return None
+        (kind,) = [a for a in args if a is not type(None)]
+        args = typing.get_args(kind)
+    if typing.get_origin(kind) is tuple:
+        items = [t for t in text.replace(",", " ").split() if t]
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_parse_value(args[0], t, key) for t in items)
+        if len(items) != len(args):
+            raise ValueError(f"setting {key!r}: expected {len(args)} comma-separated values, got {text!r}")
+        return tuple(_parse_value(a, t, key) for a, t in zip(args, items))
+    try:
+        if kind is bool:
+            low = text.lower()
+            if low not in ("true", "false", "1", "0", "yes", "no"):
+                raise ValueError
+            return low in ("true", "1", "yes")
+        if kind is int:
+            return int(text.replace("_", ""))
+        if kind is float:
+            value = float(text)
+            if value != value or value in (float("inf"), float("-inf")):
+                raise ValueError
+            return value
+        if kind is str:
+            return text
+    except ValueError:
+        raise ValueError(f"setting {key!r}: {text!r} is not a valid {kind.__name__}") from None
+    raise ValueError(f"setting {key!r}: values of type {kind} cannot be set from the command line")

@@ -184,3 +184,32 @@ def test_bad_dataset_refused_before_training(tmp_path):
                          text=True, cwd=tempfile.gettempdir(), timeout=300)
     assert res.returncode == 2 and "Traceback" not in res.stderr and str(empty) in res.stderr
     assert not (tmp_path / "out" / "checkpoints").exists()
+
+
+def test_set_overrides_any_setting_and_is_saved(scene, tmp_path):
+    import subprocess
+    import sys
+    import tempfile
+
+    exe = str(Path(sys.executable).parent / "mi-gs")
+
+    def optimize(*extra):
+        return subprocess.run([exe, "optimize", str(scene), "--iterations", "3", "--quiet", "--random-points", "500",
+                               "--eval-every", "0", *extra], capture_output=True, text=True,
+                              cwd=tempfile.gettempdir(), timeout=600)
+
+    bad = optimize("-o", str(tmp_path / "bad"), "--set", "densify.min_opacty=0.1")
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr, bad.stderr
+    assert "min_opacty" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "bad" / "checkpoints").exists()
+
+    out = tmp_path / "run"
+    res = optimize("-o", str(out), "--set", "densify.min_opacity=0.1", "--set", "optim.feature_lr=0.005",
+                   "--white-background", "--set", "data.background=0,0,1")
+    assert res.returncode == 0, res.stderr[-2000:]
+    train = json.loads((out / "config.json").read_text())["train"]
+    assert train["densify"]["min_opacity"] == 0.1 and train["optim"]["feature_lr"] == 0.005
+    assert train["data"]["background"] == [0.0, 0.0, 1.0]          # --set is applied after the other options
+    assert train["optim"]["iterations"] == 3                          # and leaves them alone
+    again = optimize("-o", str(out), "--resume", "--set", "seed=1")
+    assert again.returncode == 2 and "--set" in again.stderr and "Traceback" not in again.stderr
