@@ -151,6 +151,9 @@ class TrainConfig:
         Raises ValueError with a one-line message for an unknown name or a value of the wrong type."""
         import dataclasses
 
+        import typing
+
+        sections = [f.name for f in dataclasses.fields(self) if dataclasses.is_dataclass(getattr(self, f.name))]
         cfg = self
         for text in assignments:
             key, sep, value = str(text).partition("=")
@@ -160,35 +163,21 @@ class TrainConfig:
             path = key.split(".")
             if len(path) > 2:
                 raise ValueError(f"setting {key!r}: expected SECTION.FIELD or FIELD")
-            owner = cfg if len(path) == 1 else getattr(cfg, path[0], None)
-            if len(path) == 2 and not (dataclasses.is_dataclass(owner) and path[0] in _field_names(type(cfg))):
-                raise ValueError(f"setting {key!r}: no section {path[0]!r} (sections: "
-                                 f"{', '.join(f for f in _field_names(type(cfg)) if dataclasses.is_dataclass(getattr(cfg, f)))})")
-            name = path[-1]
-            if len(path) == 1 and name in _field_names(type(cfg)) and dataclasses.is_dataclass(getattr(cfg, name)):
-                raise ValueError(f"setting {key!r}: {name} is a section, set one of its fields ({name}.FIELD=VALUE)")
-            if name not in _field_names(type(owner)) or dataclasses.is_dataclass(getattr(owner, name)):
-                fields = [f for f in _field_names(type(owner)) if not dataclasses.is_dataclass(getattr(owner, f))]
+            if len(path) == 2 and path[0] not in sections:
+                raise ValueError(f"setting {key!r}: no section {path[0]!r} (sections: {', '.join(sections)})")
+            if len(path) == 1 and key in sections:
+                raise ValueError(f"setting {key!r}: {key} is a section, set one of its fields ({key}.FIELD=VALUE)")
+            owner, name = (cfg, key) if len(path) == 1 else (getattr(cfg, path[0]), path[1])
+            fields = [f.name for f in dataclasses.fields(owner) if f.name not in sections]
+            if name not in fields:
                 raise ValueError(f"setting {key!r}: no such field (fields{' of ' + path[0] if len(path) == 2 else ''}:"
                                  f" {', '.join(fields)})")
-            parsed = _parse_value(_field_types(type(owner))[name], value.strip(), key)
+            parsed = _parse_value(typing.get_type_hints(type(owner))[name], value.strip(), key)
             if isinstance(parsed, (int, float)) and not isinstance(parsed, bool) and parsed < 0:
                 raise ValueError(f"setting {key!r}: must not be negative, got {parsed}")
             owner = dataclasses.replace(owner, **{name: parsed})
             cfg = owner if len(path) == 1 else dataclasses.replace(cfg, **{path[0]: owner})
         return cfg
-
-
-def _field_names(kind) -> list[str]:
-    import dataclasses
-
-    return [f.name for f in dataclasses.fields(kind)]
-
-
-def _field_types(kind) -> dict:
-    import typing
-
-    return typing.get_type_hints(kind)
 
 
 def _parse_value(kind, text: str, key: str):
