@@ -30,7 +30,7 @@ DATASETS = {
     "mi_objects_colmap_black": ("mi_objects/colmap", 1, (0.0, 0.0, 0.0), "200x200, SfM points, black background"),
     "mi_room_colmap": ("mi_room/colmap", 1, (0.0, 0.0, 0.0), "256x256, SfM points"),
     "fox": ("fox", 4, (0.0, 0.0, 0.0), "-r 4: 267x474 after undistortion, random init"),
-    "maryrose": ("maryrose", 8, (1.0, 1.0, 1.0), "-r 8: 432x432 after undistortion, SfM points"),
+    "maryrose": ("maryrose", 8, (1.0, 1.0, 1.0), "-r 8: 432x432 after undistortion, masked (masks/), SfM points"),
 }
 
 

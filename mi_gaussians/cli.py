@@ -315,7 +315,7 @@ def _load_input(src: Path, cfg, out: Path, cache: str | None = None, progress: b
     from .data.dataset import load_dataset
 
     return load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
-                        random_points=d.random_points, seed=d.seed)
+                        random_points=d.random_points, seed=d.seed, masks=d.masks)
 
 
 # ------------------------------------------------------------------------------------------------------ eval
@@ -343,7 +343,7 @@ def cmd_eval(args) -> int:
         ds = _load_input(src, cfg, out, cache=_saved_cache(saved, out), expect_key=_saved_key(saved))
     else:
         ds = load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
-                          random_points=0)
+                          random_points=0, masks=d.masks)
     views = ds.test if ds.test else ds.train
     g = Gaussians.load_ply(ply)
     scores, note = evaluate_views(g, views, tuple(ds.background), cfg=cfg.raster, color_space=ds.color_space)

@@ -251,6 +251,79 @@ def test_colmap_prefers_images_r_folder(tmp_path):
         load_dataset(root, resolution=2)
 
 
+def write_masks(root: Path, names: dict[str, str], size=(24, 16), seed=0) -> dict[str, np.ndarray]:
+    """Random grey masks for the tiny COLMAP scene's images, saved as ``masks/<file name>``; returns name -> m (H, W)."""
+    rng = np.random.default_rng(seed)
+    (root / "masks").mkdir(exist_ok=True)
+    out = {}
+    for image, fname in names.items():
+        m8 = rng.integers(0, 256, (size[1], size[0]), dtype=np.uint8)
+        m8[0, 0], m8[0, 1] = 0, 255
+        Image.fromarray(m8, mode="L").save(root / "masks" / fname)
+        out[image] = m8.astype(np.float32) / 255.0
+    return out
+
+
+def test_colmap_masks_composite_over_background_and_become_alpha(tmp_path):
+    root = copy_fixture("tiny_colmap", tmp_path)
+    # the three naming conventions: same name, COLMAP's NAME.png, and <stem>_mask.<ext>
+    ms = write_masks(root, {"a.png": "a.png", "b.png": "b.png.png", "c.png": "c_mask.png"})
+    bg = np.array([0.2, 0.4, 0.6], np.float32)
+    plain = load_dataset(root, test_every=0, background=bg, masks=False)
+    masked = load_dataset(root, test_every=0, background=bg)
+    for p, v in zip(plain.train, masked.train):
+        assert p.loader.mask_path is None and v.loader.mask_path is not None
+        m = ms[v.name][..., None]
+        img = v.load_image()
+        np.testing.assert_allclose(img, p.load_image() * m + bg * (1 - m), atol=1e-6)
+        np.testing.assert_array_equal(img[0, 0], bg)                  # mask 0: the background exactly
+        np.testing.assert_array_equal(img[0, 1], p.load_image()[0, 1])  # mask 1: the image exactly
+        np.testing.assert_allclose(v.load_alpha(), m[..., 0], atol=1e-7)
+        np.testing.assert_array_equal(p.load_alpha(), 1.0)
+    # at 1/2 resolution the masked image and alpha are the block means of the full-resolution ones (area average)
+    half = load_dataset(root, test_every=0, background=bg, resolution=2)
+    for full, v in zip(masked.train, half.train):
+        np.testing.assert_allclose(v.load_image(), full.load_image().reshape(8, 2, 12, 2, 3).mean(axis=(1, 3)),
+                                   atol=1e-6)
+        np.testing.assert_allclose(v.load_alpha(), full.load_alpha().reshape(8, 2, 12, 2).mean(axis=(1, 3)),
+                                   atol=1e-6)
+
+
+def test_colmap_masks_with_images_r_folder(tmp_path):
+    """images_2/ takes masks_2/ when there is one, else the full-size masks/ resampled to the image."""
+    root = copy_fixture("tiny_colmap", tmp_path)
+    (root / "images_2").mkdir()
+    for p in (root / "images").iterdir():
+        Image.new("RGB", (12, 8), (255, 255, 255)).save(root / "images_2" / p.name)
+    ms = write_masks(root, {n: n for n in ("a.png", "b.png", "c.png")})
+    v = load_dataset(root, resolution=2, test_every=0).train[0]
+    assert v.loader.mask_path == root / "masks" / "a.png"
+    np.testing.assert_allclose(v.load_alpha(), ms["a.png"].reshape(8, 2, 12, 2).mean(axis=(1, 3)), atol=1e-6)
+    np.testing.assert_allclose(v.load_image()[..., 0], v.load_alpha(), atol=1e-6)       # white over black
+    (root / "masks_2").mkdir()
+    for n in ("a.png", "b.png", "c.png"):
+        Image.new("L", (12, 8), 0).save(root / "masks_2" / n)
+    v = load_dataset(root, resolution=2, test_every=0).train[0]
+    assert v.loader.mask_path == root / "masks_2" / "a.png"
+    np.testing.assert_array_equal(v.load_image(), 0.0)
+
+
+def test_error_colmap_masks_missing_or_wrong_size(tmp_path):
+    root = copy_fixture("tiny_colmap", tmp_path)
+    write_masks(root, {"a.png": "a.png", "c.png": "c.png"})
+    with pytest.raises(ValueError) as e:
+        load_dataset(root)
+    assert one_line(e).startswith(f"{root / 'masks' / 'b.png'}: no mask for {root / 'images' / 'b.png'}")
+    assert len(load_dataset(root, masks=False).views) == 3                  # masks=False ignores the folder
+    write_masks(root, {"b.png": "b.png"}, size=(20, 16))
+    with pytest.raises(ValueError) as e:
+        load_dataset(root)
+    assert one_line(e) == (f"{root / 'masks' / 'b.png'}: mask is 20x16, but its image {root / 'images' / 'b.png'} "
+                           "is 24x16")
+    with pytest.raises(ValueError, match="masks must be True or False"):
+        load_dataset(root, masks="yes")
+
+
 def test_area_resize_of_float_images():
     rng = np.random.default_rng(1)
     img = rng.random((16, 24, 4)).astype(np.float32)
@@ -337,6 +410,14 @@ def test_maryrose_reduced_resolution(shared_data):
     assert v.name == "IMG_9669.JPG"
     img = v.load_image()
     assert img.shape == (432, 432, 3) and v.camera.fx == pytest.approx(10536.036 * 432 / 3454, rel=1e-6)
+    # the turntable's masks (white = tankard) are used: the background is the dataset's, the mask the alpha
+    assert v.loader.mask_path == root / "masks" / "IMG_9669_mask.JPG"
+    alpha = v.load_alpha()
+    assert alpha.shape == (432, 432) and alpha[0, 0] < 0.01 and alpha[216, 216] > 0.99
+    assert 0.1 < alpha.mean() < 0.9
+    np.testing.assert_allclose(img[alpha < 1e-3], 0.0, atol=1e-3)          # composited over black (the default)
+    plain = load_dataset(root, resolution=8, masks=False).test[0]
+    assert plain.loader.mask_path is None and plain.load_image()[alpha < 1e-3].mean() > 0.05
 
 
 # ------------------------------------------------------------------------------------------------ EXR

@@ -6,6 +6,11 @@ Layouts (checked in this order, like the reference 3DGS):
   Test split: images sorted by name, ``index % test_every == 0`` is test. Initial points: the SfM points (random
   points around the cameras, as for ngp, when the model has none).
   With ``resolution = r > 1`` and an ``images_r/`` folder, its images are read instead of resampling ``images/``.
+  Masks (``masks=True``): when a ``masks/`` folder (``masks_r/`` with ``images_r/``) sits beside ``images/``, every
+  image needs its mask there, named like the image, the image name + ``.png`` (COLMAP's convention) or
+  ``<stem>_mask.<ext>``; white is the object. The image is composited through it over the background and the mask is
+  the view's alpha (so a random background trains the masked-out pixels as background), as for turntable captures
+  whose static background contradicts the object-centred poses. A mask has the image file's size or the camera's.
 - ``blender``: ``transforms_train.json`` + ``transforms_test.json`` (NeRF-synthetic). The files define the split
   (``transforms_val.json`` is ignored, as in the reference); ``test_every = 0`` merges the test views into train,
   as the reference does without ``--eval``. Initial points: random in ``[-1.3, 1.3]^3`` (see ``pointcloud.py``).
@@ -36,7 +41,7 @@ from . import blender as _blender
 from . import colmap as _colmap
 from . import pointcloud as _pc
 from .camera import Camera
-from .images import ImageLoader, Undistorter, color_space_of, image_size
+from .images import IMAGE_EXTENSIONS, ImageLoader, Undistorter, color_space_of, image_size
 
 log = logging.getLogger(__name__)
 
@@ -156,7 +161,8 @@ class _Builder:
 
     def view(self, name: str, image_path: Path, file_size: tuple[int, int], full_size: tuple[int, int],
              w2c: np.ndarray, pinhole: tuple[float, float, float, float] | None,
-             undistorter: Undistorter | None, source: str, reduced_file: bool = False) -> View:
+             undistorter: Undistorter | None, source: str, reduced_file: bool = False,
+             mask_path: Path | None = None) -> View:
         """``full_size``/``pinhole``: the camera's own size and (fx, fy, cx, cy) (ignored with an undistorter).
         ``file_size``: the image file's (w, h) from its header. ``reduced_file``: the file is already reduced by r
         (an ``images_r`` folder), so its size may differ from round(W / r) by one pixel (other tools round
@@ -184,7 +190,7 @@ class _Builder:
                 cam = Camera(pw, ph, fx, fy, cx, cy, w2c, name).scaled(*out)
         except ValueError as e:
             raise ValueError(f"{source}: {e}") from None
-        return View(name, cam, image_path, ImageLoader(out, src, self.bg, undistorter))
+        return View(name, cam, image_path, ImageLoader(out, src, self.bg, undistorter, mask_path))
 
 
 def _split_by_index(views: list[View], test_every: int) -> tuple[list[View], list[View]]:
@@ -196,7 +202,33 @@ def _split_by_index(views: list[View], test_every: int) -> tuple[list[View], lis
 
 
 # ---------------------------------------------------------------------------------------------------- COLMAP
-def _load_colmap(root: Path, b: _Builder, test_every: int, n_points: int, seed: int):
+def _masks_dir(root: Path, reduced: int) -> Path | None:
+    """The mask folder beside the image folder: masks_r/ for images_r/ (when present), else masks/, else None."""
+    for d in ([root / f"masks_{reduced}"] if reduced > 1 else []) + [root / "masks"]:
+        if d.is_dir():
+            return d
+    return None
+
+
+def _mask_file(masks_dir: Path, image: Path, name: str, file_size: tuple[int, int],
+               full_size: tuple[int, int]) -> Path:
+    """The mask of image ``name`` (a path relative to the image folder), with its size checked from its header."""
+    stem = Path(name)
+    candidates = [masks_dir / name, masks_dir / (name + ".png")]
+    candidates += [masks_dir / stem.with_name(stem.stem + suffix + ext) for suffix in ("", "_mask")
+                   for ext in (stem.suffix,) + IMAGE_EXTENSIONS]
+    mask = next((c for c in candidates if c.is_file()), None)
+    if mask is None:
+        raise ValueError(f"{masks_dir / name}: no mask for {image} (a masks folder needs one mask per image: "
+                         f"{name}, {name}.png or {stem.stem}_mask{stem.suffix})")
+    size = image_size(mask)
+    if size not in (file_size, full_size):
+        raise ValueError(f"{mask}: mask is {size[0]}x{size[1]}, but its image {image} is "
+                         f"{file_size[0]}x{file_size[1]}")
+    return mask
+
+
+def _load_colmap(root: Path, b: _Builder, test_every: int, n_points: int, seed: int, masks: bool):
     model_dir = _colmap.find_model_dir(root)
     model = _colmap.read_model(model_dir)
     images_dir = root / "images"
@@ -205,6 +237,9 @@ def _load_colmap(root: Path, b: _Builder, test_every: int, n_points: int, seed: 
         images_dir = root / f"images_{b.r}"
     if not images_dir.is_dir():
         raise ValueError(f"{images_dir}: image folder not found (COLMAP layout: images/ next to sparse/)")
+    masks_dir = _masks_dir(root, b.r if reduced else 1) if masks else None
+    if masks_dir is not None:
+        log.info("%s: compositing every image through its mask over the background", masks_dir)
     cam_file = model.file("cameras")
     views = []
     for im in model.images:
@@ -215,9 +250,12 @@ def _load_colmap(root: Path, b: _Builder, test_every: int, n_points: int, seed: 
         und = None
         if not c.is_pinhole:
             und = b.undistorter(c.model, c.width, c.height, c.params, f"{cam_file}: camera {c.camera_id}")
-        views.append(b.view(im.name, path, image_size(path), (c.width, c.height), im.world_to_camera,
+        file_size = image_size(path)
+        mask = (None if masks_dir is None
+                else _mask_file(masks_dir, path, im.name, file_size, (c.width, c.height)))
+        views.append(b.view(im.name, path, file_size, (c.width, c.height), im.world_to_camera,
                             None if und else c.pinhole_intrinsics(), und,
-                            f"{cam_file} (camera {c.camera_id})", reduced_file=reduced))
+                            f"{cam_file} (camera {c.camera_id})", reduced_file=reduced, mask_path=mask))
     train, test = _split_by_index(views, test_every)
     if len(model.points_xyz):
         return train, test, model.points_xyz, model.points_rgb
@@ -285,20 +323,24 @@ def _load_ngp(root: Path, b: _Builder, test_every: int, n_points: int, seed: int
 # ---------------------------------------------------------------------------------------------------- entry point
 def load_dataset(path: str | os.PathLike, resolution: int = _DEFAULTS.resolution,
                  background=_DEFAULTS.background, test_every: int = _DEFAULTS.test_every,
-                 random_points: int = _DEFAULTS.random_points, seed: int = _DEFAULTS.seed) -> Dataset:
+                 random_points: int = _DEFAULTS.random_points, seed: int = _DEFAULTS.seed,
+                 masks: bool = _DEFAULTS.masks) -> Dataset:
     """Load and validate a scene folder (layout detected, see the module docstring). Lazy: no pixels are decoded.
 
     resolution: divide the image size by this (``round(W / r) x round(H / r)``); background: (3,) colour that RGBA
     images are composited over; test_every: hold-out period for COLMAP/ngp (0: all train; Blender: 0 merges test into
-    train); random_points / seed: initial points for layouts without SfM points (0: none).
+    train); random_points / seed: initial points for layouts without SfM points (0: none); masks: use a COLMAP
+    scene's masks/ folder when there is one.
     Defaults are those of :class:`mi_gaussians.config.DataConfig`.
     """
     bg = _check_options(resolution, background, test_every, random_points, seed)
+    if not isinstance(masks, (bool, np.bool_)):
+        raise ValueError(f"masks must be True or False, got {masks!r}")
     root = Path(path)
     layout = detect_layout(root)
     b = _Builder(int(resolution), bg)
     if layout == "colmap":
-        train, test, xyz, rgb = _load_colmap(root, b, int(test_every), int(random_points), int(seed))
+        train, test, xyz, rgb = _load_colmap(root, b, int(test_every), int(random_points), int(seed), bool(masks))
     elif layout == "blender":
         train, test, xyz, rgb = _load_blender(root, b, int(test_every), int(random_points), int(seed))
     else:

@@ -4,7 +4,9 @@ Values are kept in the file's own encoding, like the reference 3DGS loader: PNG/
 *not* linearized; 16-bit PNG ``value / 65535``), EXR gives linear floats. A dataset's ``color_space`` says which.
 
 Alpha: PNG alpha is straight (un-premultiplied, as in NeRF-synthetic): ``rgb * a + bg * (1 - a)``. EXR alpha is
-premultiplied (OpenEXR's convention, and what Mitsuba writes): ``rgb + bg * (1 - a)``.
+premultiplied (OpenEXR's convention, and what Mitsuba writes): ``rgb + bg * (1 - a)``. A separate mask file (white =
+object, e.g. a capture's segmentation) is a straight coverage applied after the file's own alpha:
+``rgb * m + bg * (1 - m)``, alpha ``a * m``; its grey value (mean of R, G, B, not linearized) is ``m``.
 
 Downsampling is an area average (Pillow's BOX filter on float data): exact block means for integer factors, area-weighted
 for others. The reference resizes with Pillow's default (bicubic); area averaging does not alias or ring.
@@ -112,6 +114,13 @@ def composite(image: np.ndarray, background, premultiplied: bool) -> np.ndarray:
     bg = np.asarray(background, dtype=np.float32).reshape(1, 1, 3)
     out = (rgb if premultiplied else rgb * a) + bg * (1.0 - a)
     return out.astype(np.float32)
+
+
+def read_mask(path: str | os.PathLike, size: tuple[int, int]) -> np.ndarray:
+    """A mask file -> (H, W) float32 coverage in [0, 1] at ``size`` (width, height): the mean of its R, G, B (its own
+    alpha is ignored), area-resampled when the file has another size."""
+    m = read_image(path)[..., :3].mean(axis=2, keepdims=True, dtype=np.float32)
+    return resize_area(m, *size)[..., 0]
 
 
 def resize_area(image: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -226,7 +235,8 @@ class Undistorter:
 class ImageLoader:
     """How one view's image file becomes the (H, W, 3) float32 array of its camera.
 
-    Steps: read -> composite RGBA over ``background`` -> area-resample to ``source_size`` -> undistort to ``size``
+    Steps: read -> composite RGBA over ``background`` (then through ``mask_path``, when set, see the module
+    docstring) -> area-resample to ``source_size`` -> undistort to ``size``
     (when ``undistorter`` is set; otherwise ``source_size == size``). ``size`` and ``source_size`` are (width, height).
     """
 
@@ -234,13 +244,19 @@ class ImageLoader:
     source_size: tuple[int, int]
     background: tuple[float, float, float]
     undistorter: Undistorter | None = field(default=None, compare=False, repr=False)
+    mask_path: Path | None = None
 
     def load(self, path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
-        """(rgb (H, W, 3) float32, alpha (H, W) float32 or None when the file has no alpha)."""
+        """(rgb (H, W, 3) float32, alpha (H, W) float32 or None when the file has no alpha and there is no mask)."""
         raw = read_image(path)
         premultiplied = color_space_of(path) == "linear"
         rgb = composite(raw, self.background, premultiplied)
-        img = np.concatenate([rgb, raw[..., 3:4]], axis=2) if raw.shape[2] == 4 else rgb
+        alpha = raw[..., 3:4] if raw.shape[2] == 4 else None
+        if self.mask_path is not None:
+            m = read_mask(self.mask_path, (raw.shape[1], raw.shape[0]))[..., None]
+            rgb = rgb * m + np.asarray(self.background, dtype=np.float32).reshape(1, 1, 3) * (1.0 - m)
+            alpha = m if alpha is None else alpha * m
+        img = rgb if alpha is None else np.concatenate([rgb, alpha], axis=2)
         img = resize_area(img, *self.source_size)
         if self.undistorter is not None:
             img = self.undistorter.undistort(img, self.size)
