@@ -254,7 +254,7 @@ class ImageLoader:
         alpha = raw[..., 3:4] if raw.shape[2] == 4 else None
         if self.mask_path is not None:
             m = read_mask(self.mask_path, (raw.shape[1], raw.shape[0]))[..., None]
-            rgb = rgb * m + np.asarray(self.background, dtype=np.float32).reshape(1, 1, 3) * (1.0 - m)
+            rgb = composite(np.concatenate([rgb, m], axis=2), self.background, premultiplied=False)
             alpha = m if alpha is None else alpha * m
         img = rgb if alpha is None else np.concatenate([rgb, alpha], axis=2)
         img = resize_area(img, *self.source_size)
