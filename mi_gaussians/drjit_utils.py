@@ -24,3 +24,31 @@ def owned_tensor(a: np.ndarray) -> "mi.TensorXf":
 def to_numpy(t) -> np.ndarray:
     """A NumPy copy (float32) of a Dr.Jit tensor or array."""
     return np.array(t, dtype=np.float32, copy=True)
+
+
+def owned_array(tp, a: np.ndarray):
+    """A flat Dr.Jit array of type ``tp`` (``mi.Float``, ``mi.UInt32``, ...) owning a copy of the NumPy array ``a``
+    (see :func:`owned_tensor` for why a copy)."""
+    a = np.ascontiguousarray(a).reshape(-1)
+    out = dr.zeros(tp, a.size)
+    if a.size:
+        dr.scatter(out, tp(a), dr.arange(mi.UInt32, a.size))
+    return out
+
+
+def sigmoid(x):
+    """The logistic function 1 / (1 + exp(-x)) of a Dr.Jit array (differentiable)."""
+    return dr.rcp(1.0 + dr.exp(-x))
+
+
+def quaternion_to_matrix(q_wxyz: "mi.Vector4f") -> "mi.Matrix3f":
+    """Rotation matrices of (w, x, y, z) quaternions of any norm (normalized here, like the reference's
+    ``build_rotation``; a zero quaternion gives the identity). Differentiable."""
+    n2 = dr.squared_norm(q_wxyz)
+    q = q_wxyz * dr.rsqrt(dr.select(n2 > 1e-24, n2, 1e-24))
+    w, x, y, z = q.x, q.y, q.z, q.w
+    return mi.Matrix3f(
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    )

@@ -60,3 +60,15 @@ def summarize(scores: list[ViewScore]) -> dict:
     if scores and all(s.lpips is not None for s in scores):
         out["lpips"] = float(np.mean([s.lpips for s in scores]))
     return out
+
+
+def scores_report(scores: list[ViewScore], lpips_note: str | None = None) -> dict:
+    """The metrics record of a set of scored views, as ``metrics.json`` and ``eval.json`` hold it: ``mean``
+    (:func:`summarize`), ``views`` (name -> psnr, ssim and lpips when computed) and ``lpips_note`` when LPIPS was not
+    computed. Callers add their own fields (split, number of Gaussians, timings)."""
+    out = {"mean": summarize(scores),
+           "views": {s.name: {"psnr": s.psnr, "ssim": s.ssim, **({"lpips": s.lpips} if s.lpips is not None else {})}
+                     for s in scores}}
+    if lpips_note:
+        out["lpips_note"] = lpips_note
+    return out
