@@ -1,4 +1,7 @@
-"""Frames, layouts and the small converters between them (NumPy only, no Dr.Jit state).
+"""Frames, layouts and the small converters between them.
+
+The converters work on NumPy arrays and hold no state; only :func:`ellipsoids_shape_dict` makes Dr.Jit tensors (for
+``mi.load_dict``), so it needs a Mitsuba variant to be set.
 
 Frames
 ------
@@ -99,10 +102,16 @@ def normalize_quat(q) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------------- SH layouts
+def sh_coeff_count(degree: int) -> int:
+    """SH coefficients per colour channel for a degree: ``K = (degree + 1)^2`` (the inverse of
+    :func:`sh_degree_from_coeff_count`)."""
+    return (int(degree) + 1) ** 2
+
+
 def sh_degree_from_coeff_count(k: int) -> int:
     """SH degree ``d`` in 0..3 from the number of coefficients per channel ``K = (d + 1)^2``; ValueError otherwise."""
     d = int(round(math.sqrt(max(k, 0)))) - 1
-    if d < 0 or d > 3 or (d + 1) ** 2 != k:
+    if d < 0 or d > 3 or sh_coeff_count(d) != k:
         raise ValueError(f"{k} SH coefficients per channel is not (d + 1)^2 for a degree d in 0..3")
     return d
 

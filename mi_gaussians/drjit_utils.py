@@ -1,4 +1,12 @@
-"""Small conversions between NumPy and Dr.Jit that every layer needs."""
+"""Generic Dr.Jit helpers that every layer needs: NumPy <-> Dr.Jit copies, float min/max/clamp, the logistic
+function and quaternion rotation matrices.
+
+Float min/max/clamp are written with ``dr.select``: ``dr.minimum/maximum/clip`` on floats abort the process when
+Dr.Jit JIT-compiles with libLLVM 15 (see ``drjit-notes.md``). The package selects a newer libLLVM at start-up, but a
+user may point ``DRJIT_LIBLLVM_PATH`` at an old one; :func:`fmin`, :func:`fmax` and :func:`fclamp` compile to the
+same select instructions on every LLVM and on CUDA, and their gradient follows the selected branch (zero for the
+clamped side), like the reference rasterizer's ``min``/``max``.
+"""
 
 from __future__ import annotations
 
@@ -36,6 +44,21 @@ def owned_array(tp, a: np.ndarray):
     return out
 
 
+def fmin(a, b):
+    """Elementwise minimum of floats, ``dr.select(a < b, a, b)`` (see the module docstring)."""
+    return dr.select(a < b, a, b)
+
+
+def fmax(a, b):
+    """Elementwise maximum of floats, ``dr.select(a > b, a, b)`` (see the module docstring)."""
+    return dr.select(a > b, a, b)
+
+
+def fclamp(x, lo, hi):
+    """``x`` clamped to ``[lo, hi]`` with :func:`fmax` then :func:`fmin`."""
+    return fmin(fmax(x, lo), hi)
+
+
 def sigmoid(x):
     """The logistic function 1 / (1 + exp(-x)) of a Dr.Jit array (differentiable)."""
     return dr.rcp(1.0 + dr.exp(-x))
@@ -44,8 +67,7 @@ def sigmoid(x):
 def quaternion_to_matrix(q_wxyz: "mi.Vector4f") -> "mi.Matrix3f":
     """Rotation matrices of (w, x, y, z) quaternions of any norm (normalized here, like the reference's
     ``build_rotation``; a zero quaternion gives the identity). Differentiable."""
-    n2 = dr.squared_norm(q_wxyz)
-    q = q_wxyz * dr.rsqrt(dr.select(n2 > 1e-24, n2, 1e-24))
+    q = q_wxyz * dr.rsqrt(fmax(dr.squared_norm(q_wxyz), 1e-24))
     w, x, y, z = q.x, q.y, q.z, q.w
     return mi.Matrix3f(
         1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import RasterConfig
-from .imwrite import linear_to_srgb
+from .imwrite import display_encode
 from .metrics import lpips_available, lpips_vgg, psnr, ssim_np
 from .model.gaussians import Gaussians
 from .raster.rasterize import render
@@ -24,11 +24,9 @@ class ViewScore:
 
 
 def display(img: np.ndarray, color_space: str = "srgb") -> np.ndarray:
-    """What the metrics compare: the display-encoded image in [0, 1] (linear images are sRGB-encoded first)."""
-    img = np.asarray(img, dtype=np.float32)
-    if color_space == "linear":
-        img = linear_to_srgb(np.maximum(img, 0.0))
-    return np.clip(img, 0.0, 1.0)
+    """What the metrics compare: the display-encoded image (:func:`mi_gaussians.imwrite.display_encode`: linear images
+    are sRGB-encoded first), float32, clipped to [0, 1]."""
+    return np.clip(display_encode(np.asarray(img, dtype=np.float32), color_space), 0.0, 1.0)
 
 
 def evaluate_views(g: Gaussians, views, background, sh_degree: int | None = None,

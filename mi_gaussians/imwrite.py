@@ -15,15 +15,37 @@ from .io_utils import atomic_path
 
 COLOR_SPACES = ("srgb", "linear")
 
+# The sRGB transfer curve (IEC 61966-2-1): linear segment below the thresholds, offset power curve above. Also used by
+# the Dr.Jit decoder of the ``gaussian_splatting`` integrator (mi_gaussians.plugins.splat_integrator).
+SRGB_DECODE_THRESHOLD = 0.04045     # encoded value where the linear segment ends
+SRGB_ENCODE_THRESHOLD = 0.0031308   # linear value where the linear segment ends
+SRGB_SLOPE = 12.92                  # slope of the linear segment
+SRGB_OFFSET = 0.055                 # encoded = (1 + offset) linear^(1 / gamma) - offset
+SRGB_GAMMA = 2.4
+
 
 def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values -> linear (float32; the power curve continues above 1)."""
     x = np.asarray(x, dtype=np.float32)
-    return np.where(x <= 0.04045, x / 12.92, ((np.maximum(x, 0.04045) + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    return np.where(x <= SRGB_DECODE_THRESHOLD, x / SRGB_SLOPE,
+                    ((np.maximum(x, SRGB_DECODE_THRESHOLD) + SRGB_OFFSET) / (1.0 + SRGB_OFFSET)) ** SRGB_GAMMA
+                    ).astype(np.float32)
 
 
 def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    """Linear values -> sRGB-encoded (float32; the power curve continues above 1)."""
     x = np.asarray(x, dtype=np.float32)
-    return np.where(x <= 0.0031308, x * 12.92, 1.055 * np.maximum(x, 0.0031308) ** (1 / 2.4) - 0.055).astype(np.float32)
+    return np.where(x <= SRGB_ENCODE_THRESHOLD, x * SRGB_SLOPE,
+                    (1.0 + SRGB_OFFSET) * np.maximum(x, SRGB_ENCODE_THRESHOLD) ** (1 / SRGB_GAMMA) - SRGB_OFFSET
+                    ).astype(np.float32)
+
+
+def display_encode(img: np.ndarray, color_space: str = "srgb") -> np.ndarray:
+    """What a person sees, before clipping: linear images are sRGB-encoded (negative values set to 0 first); images
+    that already are sRGB-encoded are returned unchanged."""
+    if color_space == "linear":
+        return linear_to_srgb(np.maximum(img, 0.0))
+    return img
 
 
 def to_uint8(x: np.ndarray) -> np.ndarray:

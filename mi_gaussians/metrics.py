@@ -1,5 +1,7 @@
 """Image-quality metrics of the 3DGS evaluation: PSNR, SSIM and (when available offline) LPIPS-VGG.
 
+Scores on NumPy images; SSIM runs the Dr.Jit kernels of :mod:`mi_gaussians.image_ops` that the training loss uses.
+
 All functions take NumPy-convertible float images of shape (H, W, 3) (or (H, W, C)) with values in [0, 1] and return
 Python floats for one image pair; averaging over the test views is the caller's job (the reference averages per-image
 scores).
@@ -18,6 +20,9 @@ import math
 import os
 
 import numpy as np
+
+from .drjit_utils import owned_tensor
+from .image_ops import gaussian_window, ssim
 
 # torchvision's ImageNet VGG16 weights (the file torch.hub caches for ``vgg16(weights=IMAGENET1K_V1)``)
 VGG16_WEIGHTS_FILE = "vgg16-397923af.pth"
@@ -57,8 +62,6 @@ def _ssim_numpy(a: np.ndarray, b: np.ndarray, window: int = 11, sigma: float = 1
     """The reference SSIM in float64 with SciPy (zero padding, separable Gaussian window)."""
     from scipy.ndimage import correlate1d
 
-    from .optim.losses import gaussian_window
-
     g = np.asarray(gaussian_window(window, sigma))
 
     def blur(v):
@@ -73,16 +76,13 @@ def _ssim_numpy(a: np.ndarray, b: np.ndarray, window: int = 11, sigma: float = 1
 def ssim_np(img, ref, clamp: bool = True) -> float:
     """Mean SSIM (the reference's 11 x 11 Gaussian window, sigma 1.5, zero padding), as the training loss computes it.
 
-    Runs the loss's Dr.Jit kernels (``mi_gaussians.optim.losses.ssim``) when a JIT Mitsuba variant is active, so the
-    metric and the loss agree; otherwise a float64 NumPy/SciPy port of the same formula (they agree to ~1e-6)."""
+    Runs the training loss's Dr.Jit kernels (:func:`mi_gaussians.image_ops.ssim`) when a JIT Mitsuba variant is
+    active, so the metric and the loss agree; otherwise a float64 NumPy/SciPy port of the same formula (they agree to ~1e-6)."""
     a, b = _pair(img, ref, clamp)
     if a.ndim == 2:
         a, b = a[..., None], b[..., None]
     if not _jit_variant():
         return _ssim_numpy(a, b)
-    from .drjit_utils import owned_tensor
-    from .optim.losses import ssim
-
     return float(ssim(owned_tensor(a), owned_tensor(b))[0])
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .imwrite import write_image, write_png
+from .imwrite import display_encode, write_image, write_png
 from .io_utils import atomic_path, atomic_write_text
 
 
@@ -30,11 +30,8 @@ def write_view_outputs(out_dir: Path, scores, color_space: str) -> None:
         stem = Path(s.name).stem
         write_image(out_dir / "renders" / f"{stem}.exr", s.render, color_space)
         write_image(out_dir / "renders" / f"{stem}.png", s.render, color_space)
-        ref, img = s.target, s.render
-        if color_space == "linear":     # compare what a person sees: the sRGB-encoded images
-            from .imwrite import linear_to_srgb
-
-            ref, img = linear_to_srgb(np.maximum(ref, 0.0)), linear_to_srgb(np.maximum(img, 0.0))
+        # compare what a person sees: the display-encoded images
+        ref, img = display_encode(s.target, color_space), display_encode(s.render, color_space)
         write_png(out_dir / "compare" / f"{stem}.png", side_by_side(img, ref))
 
 

@@ -6,13 +6,12 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_gaussians.config import RasterConfig
+from mi_gaussians.conventions import ELLIPSOID_STRUCT_SIZE, sh_coeff_count, sh_degree_from_coeff_count
 from mi_gaussians.data.camera import Camera
-from mi_gaussians.model.sh import num_sh_coeffs
-from mi_gaussians.raster.mathops import fmax
+from mi_gaussians.drjit_utils import fmax
+from mi_gaussians.imwrite import SRGB_DECODE_THRESHOLD, SRGB_GAMMA, SRGB_OFFSET, SRGB_SLOPE
 from mi_gaussians.raster.projection import GaussianArrays
 from mi_gaussians.raster.rasterize import render_arrays
-
-ELLIPSOID_STRIDE = 10   # centre (3), sigma (3), quaternion (x, y, z, w)
 
 
 def gaussians_from_ellipsoids(shape, max_degree: int = 3) -> GaussianArrays:
@@ -23,26 +22,32 @@ def gaussians_from_ellipsoids(shape, max_degree: int = 3) -> GaussianArrays:
     p = mi.traverse(shape)
     data, opac, sh = p["data"], p["opacities"], p["sh_coeffs"]
     n = dr.width(opac)
-    if n == 0 or dr.width(data) != n * ELLIPSOID_STRIDE:
+    if n == 0 or dr.width(data) != n * ELLIPSOID_STRUCT_SIZE:
         raise ValueError(f"gaussian_splatting: ellipsoids shape {shape.id()!r} holds {dr.width(data)} data values "
-                         f"for {n} opacities (expected {ELLIPSOID_STRIDE} per ellipsoid)")
-    k = dr.width(sh) // (3 * n)
-    if k * 3 * n != dr.width(sh) or k not in (1, 4, 9, 16):
+                         f"for {n} opacities (expected {ELLIPSOID_STRUCT_SIZE} per ellipsoid)")
+    k, extra = divmod(dr.width(sh), 3 * n)
+    try:
+        stored_degree = sh_degree_from_coeff_count(k) if extra == 0 else None
+    except ValueError:
+        stored_degree = None
+    if stored_degree is None:
         raise ValueError(f"gaussian_splatting: ellipsoids shape {shape.id()!r} has {dr.width(sh)} SH values for "
                          f"{n} ellipsoids (expected 3 (d + 1)^2 per ellipsoid, d <= 3)")
-    degree = min({1: 0, 4: 1, 9: 2, 16: 3}[k], max_degree)
+    degree = min(stored_degree, max_degree)
     idx = dr.arange(mi.UInt32, n)
-    base = idx * ELLIPSOID_STRIDE
-    f = [dr.gather(mi.Float, data, base + c) for c in range(ELLIPSOID_STRIDE)]
-    rest = [dr.gather(mi.Vector3f, sh, idx * k + j) for j in range(1, num_sh_coeffs(degree))]
+    base = idx * ELLIPSOID_STRUCT_SIZE
+    f = [dr.gather(mi.Float, data, base + c) for c in range(ELLIPSOID_STRUCT_SIZE)]
+    rest = [dr.gather(mi.Vector3f, sh, idx * k + j) for j in range(1, sh_coeff_count(degree))]
     return GaussianArrays(means=mi.Point3f(f[0], f[1], f[2]), sigmas=mi.Vector3f(f[3], f[4], f[5]),
                           quats=mi.Vector4f(f[9], f[6], f[7], f[8]), opacity=mi.Float(opac),
                           sh_dc=dr.gather(mi.Vector3f, sh, idx * k), sh_rest=rest, sh_degree=degree)
 
 
 def srgb_to_linear(x: mi.Float) -> mi.Float:
-    """The sRGB transfer function inverted (differentiable; the power curve continues above 1)."""
-    return dr.select(x <= 0.04045, x / 12.92, dr.power((fmax(x, 0.04045) + 0.055) / 1.055, 2.4))
+    """The sRGB transfer function inverted (differentiable; the power curve continues above 1): the Dr.Jit twin of
+    :func:`mi_gaussians.imwrite.srgb_to_linear`, with its constants."""
+    return dr.select(x <= SRGB_DECODE_THRESHOLD, x / SRGB_SLOPE,
+                     dr.power((fmax(x, SRGB_DECODE_THRESHOLD) + SRGB_OFFSET) / (1.0 + SRGB_OFFSET), SRGB_GAMMA))
 
 
 def _concat(parts: list[GaussianArrays]) -> GaussianArrays:
@@ -57,7 +62,7 @@ def _concat(parts: list[GaussianArrays]) -> GaussianArrays:
         opacity=cat([p.opacity for p in parts]),
         sh_dc=mi.Vector3f(*[cat([p.sh_dc[i] for p in parts]) for i in range(3)]),
         sh_rest=[mi.Vector3f(*[cat([p.sh_rest[j][i] for p in parts]) for i in range(3)])
-                 for j in range(num_sh_coeffs(deg) - 1)],
+                 for j in range(sh_coeff_count(deg) - 1)],
         sh_degree=deg)
 
 

@@ -14,7 +14,7 @@ import numpy as np
 
 import mi_gaussians as mig
 from mi_gaussians.config import RasterConfig
-from mi_gaussians.raster.mathops import fmin
+from mi_gaussians.drjit_utils import fmin
 from mi_gaussians.raster.projection import GaussianArrays, ViewParams, project
 
 NAMES = ("means", "scales", "rotations", "opacities", "sh_dc", "sh_rest")

@@ -9,7 +9,7 @@ import mitsuba as mi
 
 from mi_gaussians.conventions import SH_C0
 from mi_gaussians.model.gaussians import Gaussians
-from mi_gaussians.model.init import MIN_DIST2, init_from_points, mean_knn_dist2, random_cube_points
+from mi_gaussians.model.init import MIN_DIST2, init_from_points, mean_knn_dist2
 
 KEYS = ("means", "scales", "rotations", "opacities", "sh_dc", "sh_rest")
 
@@ -114,11 +114,3 @@ def test_invalid_input(kwargs, match):
     with pytest.raises(ValueError, match=match):
         init_from_points(**kwargs)
 
-
-def test_random_cube_points():
-    xyz, rgb = random_cube_points(1000, half_extent=1.3, seed=3)
-    assert xyz.shape == (1000, 3) and rgb.shape == (1000, 3)
-    assert np.all(np.abs(xyz) <= 1.3) and np.all((rgb >= 0) & (rgb <= 1))
-    assert xyz.min() < -1.2 and xyz.max() > 1.2  # covers the cube
-    again, _ = random_cube_points(1000, half_extent=1.3, seed=3)
-    assert np.array_equal(xyz, again)

@@ -1,5 +1,6 @@
-"""Photometric losses (optim/losses.py): SSIM against scikit-image, an independent SciPy float64 implementation of the
-reference, a slow pure-AD Dr.Jit reference and finite differences; L1 and the fused training loss; no recompilation."""
+"""Image operators (image_ops.py) and the training loss (optim/losses.py): SSIM against scikit-image, an independent
+SciPy float64 implementation of the reference, a slow pure-AD Dr.Jit reference and finite differences; L1 and the
+fused training loss; no recompilation."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import mitsuba as mi
 from scipy.ndimage import correlate, gaussian_filter
 
 from mi_gaussians.drjit_utils import owned_tensor
+from mi_gaussians import image_ops
 from mi_gaussians.optim import losses
 
 C1, C2 = 0.01 ** 2, 0.03 ** 2
@@ -61,7 +63,7 @@ def rel_err(got, want) -> float:
 def ssim_ad_reference(x: "mi.TensorXf", y: "mi.TensorXf") -> "mi.Float":
     """A slow, obviously-correct Dr.Jit version: 2 x 11 masked gathers per blur, derivatives by plain AD."""
     H, W, C = x.shape
-    w = losses.gaussian_window()
+    w = image_ops.gaussian_window()
     idx = dr.arange(mi.UInt32, H * W * C)
     c = mi.Int32(idx % C)
     px = mi.Int32((idx // C) % W)
@@ -112,7 +114,7 @@ def test_ssim_matches_scikit_image_interior(kind):
         a, b = structured_pair(rng, shape)
     want = structural_similarity(a, b, channel_axis=2, gaussian_weights=True, sigma=1.5,
                                  use_sample_covariance=False, data_range=1.0)
-    m = np.array(losses.ssim_map(owned_tensor(a), owned_tensor(b)))
+    m = np.array(image_ops.ssim_map(owned_tensor(a), owned_tensor(b)))
     assert m.shape == shape
     assert abs(m[5:-5, 5:-5].mean() - want) < 1e-4
     assert 0.05 < want < 0.95
@@ -126,32 +128,32 @@ def test_ssim_matches_zero_padded_reference(shape):
     a, b = structured_pair(rng, shape) if min(shape[:2]) >= 12 else (rng.random(shape), rng.random(shape))
     want_map = ssim_map_ref(a, b)
     x, y = owned_tensor(a), owned_tensor(b)
-    assert abs(losses.ssim(x, y)[0] - want_map.mean()) < 1e-5
+    assert abs(image_ops.ssim(x, y)[0] - want_map.mean()) < 1e-5
     # per pixel, float32 cancellation in E[x^2] - mu^2 (as in the reference's float32 torch code) reaches ~1e-4
     # where the local variance is tiny; the mean is far more accurate
-    assert np.abs(np.array(losses.ssim_map(x, y)) - want_map).max() < 5e-4
-    assert abs(losses.d_ssim(x, y)[0] - (1 - want_map.mean())) < 1e-5
+    assert np.abs(np.array(image_ops.ssim_map(x, y)) - want_map).max() < 5e-4
+    assert abs(image_ops.d_ssim(x, y)[0] - (1 - want_map.mean())) < 1e-5
 
 
 def test_ssim_of_2d_tensor_and_identical_images():
     rng = np.random.default_rng(3)
     a, b = rng.random((9, 14)), rng.random((9, 14))
-    assert abs(losses.ssim(owned_tensor(a), owned_tensor(b))[0] - ssim_map_ref(a, b).mean()) < 1e-5
+    assert abs(image_ops.ssim(owned_tensor(a), owned_tensor(b))[0] - ssim_map_ref(a, b).mean()) < 1e-5
     x = owned_tensor(rng.random((20, 30, 3)))
-    assert abs(losses.ssim(x, x)[0] - 1.0) < 1e-6
+    assert abs(image_ops.ssim(x, x)[0] - 1.0) < 1e-6
 
 
 def test_window_and_argument_checks():
-    w = losses.gaussian_window(11, 1.5)
+    w = image_ops.gaussian_window(11, 1.5)
     assert len(w) == 11 and abs(sum(w) - 1) < 1e-12 and w == w[::-1]
     np.testing.assert_allclose(np.outer(w, w), window_2d(), rtol=1e-12)
     x = owned_tensor(np.zeros((8, 8, 3)))
     with pytest.raises(ValueError):
-        losses.ssim(x, x, window=10)
+        image_ops.ssim(x, x, window=10)
     with pytest.raises(ValueError):
-        losses.ssim(x, owned_tensor(np.zeros((8, 9, 3))))
+        image_ops.ssim(x, owned_tensor(np.zeros((8, 9, 3))))
     with pytest.raises(TypeError):
-        losses.l1(np.zeros((8, 8, 3)), x)
+        image_ops.l1(np.zeros((8, 8, 3)), x)
     with pytest.raises(ValueError):
         losses.photometric_loss(x, x, 1.5)
 
@@ -164,7 +166,7 @@ def test_ssim_gradients_match_finite_differences():
     b = np.clip(a + 0.2 * rng.standard_normal(a.shape), 0, 1)
     x, y = owned_tensor(a), owned_tensor(b)
     dr.enable_grad(x, y)
-    dr.backward(losses.ssim(x, y))
+    dr.backward(image_ops.ssim(x, y))
     assert rel_err(dr.grad(x), central_fd(lambda v: ssim_map_ref(v, b).mean(), a)) < 1e-3
     assert rel_err(dr.grad(y), central_fd(lambda v: ssim_map_ref(a, v).mean(), b)) < 1e-3
 
@@ -175,7 +177,7 @@ def test_ssim_map_gradients_and_forward_mode():
     a, b, wts, d = (rng.random((11, 13, 3)) for _ in range(4))
     x, y = owned_tensor(a), owned_tensor(b)
     dr.enable_grad(x, y)
-    dr.backward(dr.sum((losses.ssim_map(x, y) * owned_tensor(wts)).array))
+    dr.backward(dr.sum((image_ops.ssim_map(x, y) * owned_tensor(wts)).array))
     assert rel_err(dr.grad(x), central_fd(lambda v: (ssim_map_ref(v, b) * wts).sum(), a)) < 1e-3
     assert rel_err(dr.grad(y), central_fd(lambda v: (ssim_map_ref(a, v) * wts).sum(), b)) < 1e-3
 
@@ -184,13 +186,13 @@ def test_ssim_map_gradients_and_forward_mode():
     x = owned_tensor(a)
     dr.enable_grad(x)
     dr.set_grad(x, owned_tensor(d))
-    s = losses.ssim(x, owned_tensor(b))
+    s = image_ops.ssim(x, owned_tensor(b))
     dr.forward_to(s)
     assert abs(dr.grad(s)[0] - fd_map.mean()) < 1e-3 * abs(fd_map.mean())
     x = owned_tensor(a)
     dr.enable_grad(x)
     dr.set_grad(x, owned_tensor(d))
-    m = losses.ssim_map(x, owned_tensor(b))
+    m = image_ops.ssim_map(x, owned_tensor(b))
     dr.forward_to(m)
     assert rel_err(dr.grad(m), fd_map) < 1e-3
 
@@ -202,12 +204,12 @@ def test_ssim_gradient_matches_pure_ad_reference(shape):
     a, b = structured_pair(rng, shape)
     x, y = owned_tensor(a), owned_tensor(b)
     dr.enable_grad(x, y)
-    dr.backward(losses.ssim(x, y))
+    dr.backward(image_ops.ssim(x, y))
     xr, yr = owned_tensor(a), owned_tensor(b)
     dr.enable_grad(xr, yr)
     s_ref = ssim_ad_reference(xr, yr)
     dr.backward(s_ref)
-    assert abs(losses.ssim(owned_tensor(a), owned_tensor(b))[0] - s_ref[0]) < 1e-5
+    assert abs(image_ops.ssim(owned_tensor(a), owned_tensor(b))[0] - s_ref[0]) < 1e-5
     assert rel_err(dr.grad(x), np.array(dr.grad(xr))) < 1e-4
     assert rel_err(dr.grad(y), np.array(dr.grad(yr))) < 1e-4
 
@@ -220,7 +222,7 @@ def test_l1_value_and_gradient():
     b[0, :3] = a[0, :3]                                           # zero differences
     x = owned_tensor(a)
     dr.enable_grad(x)
-    v = losses.l1(x, owned_tensor(b))
+    v = image_ops.l1(x, owned_tensor(b))
     dr.backward(v)
     assert abs(v[0] - np.abs(a - b).mean()) < 1e-7
     np.testing.assert_allclose(np.array(dr.grad(x)), np.sign(a - b) / a.size, rtol=1e-6)
@@ -250,7 +252,7 @@ def test_photometric_loss_value_and_gradient(lam):
     # separately: l1 with sign(0) = 0 plus the SSIM gradient
     x2 = owned_tensor(a)
     dr.enable_grad(x2)
-    dr.backward((1 - lam) * losses.l1(x2, y) + lam * losses.d_ssim(x2, y))
+    dr.backward((1 - lam) * image_ops.l1(x2, y) + lam * image_ops.d_ssim(x2, y))
     np.testing.assert_allclose(g, np.array(dr.grad(x2)), rtol=1e-4, atol=1e-9)
     # no gradient for the reference image unless asked, and with it: the mirror image
     y2 = owned_tensor(b)
@@ -284,7 +286,7 @@ def test_no_recompilation_for_new_images_of_the_same_size():
         loss = losses.photometric_loss(x * 1.0, images[4 * k + 1], lam)
         dr.backward(loss)
         dr.eval(dr.grad(x))
-        dr.eval(losses.ssim(images[4 * k + 2], images[4 * k + 3]))
+        dr.eval(image_ops.ssim(images[4 * k + 2], images[4 * k + 3]))
 
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
@@ -312,9 +314,9 @@ def test_short_blocks(monkeypatch):
         return v[0], np.array(dr.grad(x))
 
     v0, g0 = run()
-    monkeypatch.setattr(losses, "_BLOCK_Y", 7)
-    monkeypatch.setattr(losses, "_BLOCK_X", 6)
-    monkeypatch.setattr(losses, "_UNROLL", 4)
+    monkeypatch.setattr(image_ops, "_BLOCK_Y", 7)
+    monkeypatch.setattr(image_ops, "_BLOCK_X", 6)
+    monkeypatch.setattr(image_ops, "_UNROLL", 4)
     v1, g1 = run()
     assert abs(v0 - loss_ref(a, b, 0.2)) < 1e-6 and abs(v1 - v0) < 1e-6
     np.testing.assert_allclose(g1, g0, rtol=1e-5, atol=1e-10)

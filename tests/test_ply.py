@@ -19,7 +19,6 @@ from mi_gaussians.model.ply import (
     ply_property_names,
     read_ply,
     read_ply_header,
-    sh_degree_from_f_rest_count,
     write_ply,
 )
 
@@ -218,10 +217,10 @@ def test_write_rejects_bad_shapes(tmp_path):
     assert not (tmp_path / "x.ply").exists()
 
 
-def test_sh_degree_from_f_rest_count():
-    assert [sh_degree_from_f_rest_count(m) for m in (0, 9, 24, 45)] == [0, 1, 2, 3]
+def test_f_rest_counts():
+    assert [sum(n.startswith("f_rest_") for n in ply_property_names(d)) for d in range(4)] == [0, 9, 24, 45]
     with pytest.raises(ValueError):
-        sh_degree_from_f_rest_count(12)
+        ply_property_names(4)
 
 
 # ---------------------------------------------------------------------------------------------------- other tools

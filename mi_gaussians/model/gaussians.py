@@ -9,29 +9,24 @@ Raw values are stored exactly as in a 3DGS ``point_cloud.ply`` (see ``convention
     sh_dc      (N, 3)        degree-0 SH coefficient per RGB channel
     sh_rest    (N, K - 1, 3) higher bands, coefficient-major (band index, then RGB); K = (degree + 1)^2
 
-The optimizer, densification and I/O live elsewhere; this class only holds, converts and activates.
+This class holds them, checks their shapes and converts them to and from NumPy, PLY files (:mod:`.ply`) and point
+clouds (:mod:`.init`, one way). Activations (``exp``, ``sigmoid``, SH) are applied by the rasterizer
+(:mod:`mi_gaussians.raster.projection`); the optimizer and densification live in :mod:`mi_gaussians.optim`.
 """
 
 from __future__ import annotations
 
-import math
 import os
 from dataclasses import dataclass
 
 import mitsuba as mi
 import numpy as np
 
+from ..conventions import sh_degree_from_coeff_count
 from ..drjit_utils import owned_tensor, to_numpy
 
+#: The raw parameters' names, in canonical order: the one list of them (``numpy()`` keys, the optimizer's groups).
 PARAMETER_NAMES = ("means", "scales", "rotations", "opacities", "sh_dc", "sh_rest")
-
-
-def sh_degree_from_count(k: int) -> int:
-    """SH degree d from the number of coefficients per channel K = (d + 1)^2."""
-    d = int(round(math.sqrt(k))) - 1
-    if d < 0 or d > 3 or (d + 1) ** 2 != k:
-        raise ValueError(f"{k} SH coefficients per channel is not (d + 1)^2 for a degree d in 0..3")
-    return d
 
 
 @dataclass
@@ -53,7 +48,7 @@ class Gaussians:
         rest = tuple(self.sh_rest.shape)
         if len(rest) != 3 or rest[0] != n or rest[2] != 3:
             raise ValueError(f"Gaussians.sh_rest: expected shape ({n}, K-1, 3), got {rest}")
-        sh_degree_from_count(rest[1] + 1)
+        sh_degree_from_coeff_count(rest[1] + 1)
 
     # ---------------------------------------------------------------- construction / conversion
     @classmethod
@@ -79,9 +74,6 @@ class Gaussians:
         return {name: to_numpy(getattr(self, name)).reshape(tuple(getattr(self, name).shape))
                 for name in PARAMETER_NAMES}
 
-    def parameters(self) -> dict[str, "mi.TensorXf"]:
-        return {name: getattr(self, name) for name in PARAMETER_NAMES}
-
     @property
     def n(self) -> int:
         return int(self.means.shape[0])
@@ -91,7 +83,7 @@ class Gaussians:
 
     @property
     def sh_degree(self) -> int:
-        return sh_degree_from_count(int(self.sh_rest.shape[1]) + 1)
+        return sh_degree_from_coeff_count(int(self.sh_rest.shape[1]) + 1)
 
     # ---------------------------------------------------------------- I/O and initialization
     @classmethod

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..conventions import logit, rgb_to_sh_dc
+from ..conventions import logit, rgb_to_sh_dc, sh_coeff_count
 
 #: Floor on the mean squared neighbour distance (reference value).
 MIN_DIST2 = 1e-7
@@ -78,7 +78,7 @@ def init_from_points(xyz, rgb, sh_degree: int = 3, initial_opacity: float = 0.1)
         if bad:
             raise ValueError(f"{bad} non-finite value(s) in the {name}")
 
-    k_rest = (int(sh_degree) + 1) ** 2 - 1
+    k_rest = sh_coeff_count(sh_degree) - 1
     return {
         "means": xyz.astype(np.float32),
         "scales": init_scales(xyz),
@@ -88,17 +88,3 @@ def init_from_points(xyz, rgb, sh_degree: int = 3, initial_opacity: float = 0.1)
         "sh_rest": np.zeros((n, k_rest, 3), np.float32),
     }
 
-
-def random_cube_points(n: int = 100_000, half_extent: float = 1.3, seed: int | None = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Uniform random points in ``[-half_extent, half_extent]^3`` with uniform random colours in [0, 1].
-
-    The initialization for synthetic scenes without points (reference: 100k points in [-1.3, 1.3]^3). Note: the
-    reference draws random SH DC values in [0, 1/255], i.e. colours of almost exactly 0.5 grey; we draw the colours
-    themselves uniformly, as the published method describes ("random colours"). Returns xyz (n, 3) and rgb (n, 3),
-    float32."""
-    if n < 1:
-        raise ValueError(f"n must be positive, got {n}")
-    rng = np.random.default_rng(seed)
-    xyz = (rng.random((n, 3)) * 2.0 - 1.0) * half_extent
-    rgb = rng.random((n, 3))
-    return xyz.astype(np.float32), rgb.astype(np.float32)

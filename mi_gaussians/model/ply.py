@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..conventions import sh_channel_major_to_coeff_major, sh_coeff_major_to_channel_major
+from ..conventions import sh_channel_major_to_coeff_major, sh_coeff_count, sh_coeff_major_to_channel_major
 from ..io_utils import atomic_path
 
 #: PLY scalar type names -> NumPy type codes (the official names and the common sized aliases).
@@ -42,8 +42,8 @@ PLY_SCALAR_TYPES = {
 }
 _FORMATS = {"binary_little_endian": "<", "binary_big_endian": ">", "ascii": "="}
 
-#: Number of ``f_rest_*`` properties for SH degrees 0..3.
-F_REST_COUNTS = {0: 0, 1: 9, 2: 24, 3: 45}
+#: Number of ``f_rest_*`` properties for SH degrees 0..3: 3 (K - 1), i.e. 0, 9, 24, 45.
+F_REST_COUNTS = {d: 3 * (sh_coeff_count(d) - 1) for d in range(4)}
 _DEGREE_OF_F_REST = {m: d for d, m in F_REST_COUNTS.items()}
 
 _MAX_HEADER_BYTES = 1 << 20
@@ -67,13 +67,6 @@ def ply_property_names(sh_degree: int) -> list[str]:
     return (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
             + [f"f_rest_{i}" for i in range(F_REST_COUNTS[sh_degree])]
             + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
-
-
-def sh_degree_from_f_rest_count(m: int) -> int:
-    """SH degree from the number of ``f_rest_*`` properties (0, 9, 24, 45 -> 0..3); ValueError otherwise."""
-    if m not in _DEGREE_OF_F_REST:
-        raise ValueError(f"{m} f_rest properties: expected 0, 9, 24 or 45 (SH degree 0..3)")
-    return _DEGREE_OF_F_REST[m]
 
 
 _GROUPS = {  # output key -> PLY property names (f_rest handled separately)
@@ -438,10 +431,10 @@ def write_ply(path: str | os.PathLike, means, scales, rotations, opacities, sh_d
         rest = np.zeros((n, 0, 3), np.float32)
     else:
         rest = np.asarray(sh_rest, dtype=np.float32)
-        if rest.ndim != 3 or rest.shape[0] != n or rest.shape[2] != 3 or rest.shape[1] not in (0, 3, 8, 15):
+        if rest.ndim != 3 or rest.shape[0] != n or rest.shape[2] != 3 or 3 * rest.shape[1] not in _DEGREE_OF_F_REST:
             raise PLYError(path, f"cannot write sh_rest: expected shape ({n}, K - 1, 3) with K - 1 in 0, 3, 8, 15, "
                                  f"got {rest.shape}")
-    degree = {0: 0, 3: 1, 8: 2, 15: 3}[rest.shape[1]]
+    degree = _DEGREE_OF_F_REST[3 * rest.shape[1]]
     arrays["sh_rest"] = rest
     if check_finite:
         bad = [f"{int((~np.isfinite(a)).sum())} in {k}" for k, a in arrays.items() if not np.isfinite(a).all()]

@@ -25,7 +25,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..conventions import SH_C0
+from ..conventions import SH_C0, sh_coeff_count
 
 SH_C1 = 0.4886025119029199
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
@@ -33,15 +33,10 @@ SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.37317633
          1.445305721320277, -0.5900435899266435)
 
 
-def num_sh_coeffs(degree: int) -> int:
-    """Coefficients per colour channel for an SH degree: (degree + 1)^2."""
-    return (int(degree) + 1) ** 2
-
-
 def _check_degree(degree, n_rest: int) -> int:
     if not isinstance(degree, (int, np.integer)) or not 0 <= int(degree) <= 3:
         raise ValueError(f"SH degree must be an integer in 0..3, got {degree!r}")
-    need = num_sh_coeffs(degree) - 1
+    need = sh_coeff_count(degree) - 1
     if n_rest < need:
         raise ValueError(f"active SH degree {int(degree)} needs {need} higher-band coefficients, only {n_rest} stored")
     return int(degree)
@@ -110,38 +105,5 @@ def gather_sh_coeffs(sh_dc: "mi.TensorXf", sh_rest: "mi.TensorXf", degree: int, 
         index = dr.arange(mi.UInt32, n)
     dc = dr.gather(mi.Vector3f, sh_dc.array, index, mode=mode)
     rest = [dr.gather(mi.Vector3f, sh_rest.array, index * k_rest + j, mode=mode)
-            for j in range(num_sh_coeffs(degree) - 1)]
+            for j in range(sh_coeff_count(degree) - 1)]
     return dc, rest
-
-
-# ---------------------------------------------------------------------------------------------------- NumPy (tests)
-def sh_basis_numpy(dirs, degree: int) -> np.ndarray:
-    """Reference basis in float64 at unit directions ``dirs`` (N, 3): (N, (degree + 1)^2)."""
-    degree = _check_degree(degree, 15)
-    d = np.asarray(dirs, np.float64).reshape(-1, 3)
-    x, y, z = d[:, 0], d[:, 1], d[:, 2]
-    cols = [np.full_like(x, SH_C0)]
-    if degree >= 1:
-        cols += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
-    if degree >= 2:
-        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-        cols += [SH_C2[0] * xy, SH_C2[1] * yz, SH_C2[2] * (2 * zz - xx - yy), SH_C2[3] * xz, SH_C2[4] * (xx - yy)]
-        if degree >= 3:
-            cols += [SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * xy * z, SH_C3[2] * y * (4 * zz - xx - yy),
-                     SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy), SH_C3[4] * x * (4 * zz - xx - yy),
-                     SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3 * yy)]
-    return np.stack(cols, axis=1)
-
-
-def eval_sh_numpy(sh_dc, sh_rest, dirs, degree: int, *, normalize: bool = True) -> np.ndarray:
-    """Float64 reference of :func:`eval_sh_colors`: sh_dc (N, 3), sh_rest (N, K - 1, 3), dirs (N, 3) -> (N, 3)."""
-    sh_dc = np.asarray(sh_dc, np.float64).reshape(-1, 3)
-    n = sh_dc.shape[0]
-    sh_rest = np.asarray(sh_rest, np.float64).reshape(n, -1, 3)
-    degree = _check_degree(degree, sh_rest.shape[1])
-    d = np.asarray(dirs, np.float64).reshape(n, 3)
-    if normalize:
-        d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    coeffs = np.concatenate([sh_dc[:, None, :], sh_rest[:, : num_sh_coeffs(degree) - 1]], axis=1)
-    c = np.einsum("nk,nkc->nc", sh_basis_numpy(d, degree), coeffs) + 0.5
-    return np.where(c < 0, 0.0, c)

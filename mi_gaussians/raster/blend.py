@@ -26,13 +26,14 @@ import drjit as dr
 import mitsuba as mi
 
 from ..config import RasterConfig
+from ..drjit_utils import fmin
 from .binning import Bins
-from .mathops import fmin
 
 PIXELS_PER_LANE = 4
 TILE = 16
 LANES_PER_TILE = TILE * TILE // PIXELS_PER_LANE    # 64
-GEO = 8      # packed per-Gaussian geometry: mx, my, -a/2, -b, -c/2 (conic), opacity, depth, (pad)
+GEO = 8      # packed per-Gaussian geometry: mx, my, log2(e) (-a/2, -b, -c/2) of the conic (a, b, c), opacity,
+             # depth, (pad); see _pack_geometry
 COL = 4      # packed per-Gaussian colour: r, g, b, (pad)
 
 
@@ -189,10 +190,10 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
     i0 = dr.gather(mi.UInt32, tile_last, tile)
     Tf = dr.gather(mi.Vector4f, T_lane, lane)
     last = dr.gather(_array_types()[1], last_lane, lane)
-    gpix, gTTf = [], []
+    gpix, gT_times_T = [], []   # dL/d(r, g, b, depth sum), and dL/dT_final * T_final, per pixel
     for k in range(P):
         gpix.append(mi.Vector4f(*[dr.gather(mi.Float, g_img[c], pix[k], active=valid[k]) for c in range(4)]))
-        gTTf.append(dr.gather(mi.Float, g_img[4], pix[k], active=valid[k]) * Tf[k])
+        gT_times_T.append(dr.gather(mi.Float, g_img[4], pix[k], active=valid[k]) * Tf[k])
     inst = bins.gaussian
     alpha_min, alpha_max = cfg.alpha_min, cfg.alpha_max
     ggeo = dr.zeros(mi.Float, n * GEO)
@@ -235,7 +236,7 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
             Ti = T[k] / one_m                       # transmittance in front of this Gaussian
             gc = gpix[k]
             wgt = gc.x * c.x + gc.y * c.y + gc.z * c.z + gc.w * z
-            g_alpha = Ti * wgt - (acc[k] + gTTf[k]) / one_m
+            g_alpha = Ti * wgt - (acc[k] + gT_times_T[k]) / one_m
             aT = a * Ti
             h = hit[k]
             T[k] = dr.select(h, Ti, T[k])

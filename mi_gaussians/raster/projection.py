@@ -26,9 +26,10 @@ import numpy as np
 
 from ..config import RasterConfig
 from ..data.camera import Camera
+from ..drjit_utils import fclamp, fmax, fmin, quaternion_to_matrix, sigmoid
 from ..model.gaussians import Gaussians
 from ..model.sh import eval_sh_colors, gather_sh_coeffs
-from .mathops import fclamp, fmax, fmin
+from .blend import TILE
 
 # Relative and absolute (pixels) slack added to the footprint box against float rounding; it only adds work.
 _FOOTPRINT_REL_MARGIN = 1e-3
@@ -81,17 +82,6 @@ class Projected:
     radii: "mi.Int32"         # reference radius ceil(3 sqrt(lambda_max)) in pixels, 0 when culled
 
 
-def quaternion_to_matrix(q_wxyz: "mi.Vector4f") -> "mi.Matrix3f":
-    """Rotation matrix of a (w, x, y, z) quaternion (normalized here)."""
-    q = q_wxyz * dr.rsqrt(fmax(dr.squared_norm(q_wxyz), 1e-24))   # a zero quaternion gives the identity
-    w, x, y, z = q.x, q.y, q.z, q.w
-    return mi.Matrix3f(
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    )
-
-
 @dataclass
 class GaussianArrays:
     """Activated per-Gaussian inputs of the projection (size N), AD-tracked; built from ``Gaussians`` or from
@@ -114,7 +104,7 @@ class GaussianArrays:
         return cls(means=dr.gather(mi.Point3f, g.means.array, idx, mode=perm),
                    sigmas=dr.exp(dr.gather(mi.Vector3f, g.scales.array, idx, mode=perm)),
                    quats=dr.gather(mi.Vector4f, g.rotations.array, idx, mode=perm),
-                   opacity=dr.rcp(1.0 + dr.exp(-g.opacities.array)),
+                   opacity=sigmoid(g.opacities.array),
                    sh_dc=dc, sh_rest=rest, sh_degree=sh_degree)
 
 
@@ -181,7 +171,7 @@ def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig) -> Projecte
         j0 = dr.ceil(m.y - ey - 0.5)
         j1 = dr.floor(m.y + ey - 0.5)
         valid &= (i1 >= 0) & (i0 <= w_f - 1) & (j1 >= 0) & (j0 <= h_f - 1) & (i0 <= i1) & (j0 <= j1)
-        ts = float(cfg.tile_size)
+        ts = float(TILE)
         tx0 = mi.Int32(dr.floor(fmax(i0, 0.0) / ts))
         tx1 = mi.Int32(dr.floor(fmin(i1, w_f - 1) / ts))
         ty0 = mi.Int32(dr.floor(fmax(j0, 0.0) / ts))

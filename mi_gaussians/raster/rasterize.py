@@ -20,11 +20,11 @@ import mitsuba as mi
 
 from ..config import RasterConfig
 from ..data.camera import Camera
+from ..drjit_utils import fmax
 from ..model.gaussians import Gaussians
 from .binning import Bins, bin_gaussians
-from .blend import BlendStats, blend, make_frame
-from .mathops import fmax
-from .projection import GaussianArrays, Projected, ViewParams, project
+from .blend import TILE, BlendStats, blend, make_frame
+from .projection import GaussianArrays, ViewParams, project
 
 
 @dataclass
@@ -33,9 +33,7 @@ class RenderOutput:
     alpha: "mi.TensorXf"
     depth: "mi.TensorXf"
     radii: "mi.Int32"
-    n_instances: int
-    projected: Projected = field(repr=False)
-    bins: Bins = field(repr=False)
+    n_instances: int          # (Gaussian, tile) pairs blended
     _stats: BlendStats = field(repr=False, default=None)
 
     @property
@@ -66,11 +64,9 @@ def render(g: Gaussians, camera: Camera, background=(0.0, 0.0, 0.0), sh_degree: 
 def render_arrays(ga: GaussianArrays | None, camera: Camera, background=(0.0, 0.0, 0.0),
                   cfg: RasterConfig = RasterConfig()) -> RenderOutput:
     """Render activated Gaussians (``None`` or N = 0: an empty scene)."""
-    if cfg.tile_size != 16:
-        raise ValueError("only 16 x 16 tiles are implemented")
     bg = _check_background(background)
     W, H = camera.width, camera.height
-    tiles_x, tiles_y = (W + 15) // 16, (H + 15) // 16
+    tiles_x, tiles_y = (W + TILE - 1) // TILE, (H + TILE - 1) // TILE
 
     view = ViewParams.from_camera(camera)
     if ga is not None and dr.width(ga.opacity) > 0:
@@ -97,4 +93,4 @@ def render_arrays(ga: GaussianArrays | None, camera: Camera, background=(0.0, 0.
     depth = dr.select(alpha > 1e-12, dsum / fmax(alpha, 1e-12), 0.0)
     rgb = mi.TensorXf(dr.ravel(mi.Color3f(r, gch, b)), (H, W, 3))
     return RenderOutput(rgb=rgb, alpha=mi.TensorXf(alpha, (H, W)), depth=mi.TensorXf(depth, (H, W)),
-                        radii=radii, n_instances=bins.n_instances, projected=proj, bins=bins, _stats=stats)
+                        radii=radii, n_instances=bins.n_instances, _stats=stats)
