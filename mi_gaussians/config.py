@@ -1,4 +1,4 @@
-"""Every default of mi-gaussians, in frozen dataclasses (the only home of defaults).
+"""Every default of mi-gaussians, in frozen dataclasses (the only home of defaults: the command line reads them).
 
 Values follow the 3DGS paper and its reference implementation (see ``conventions.md``); where we differ on purpose,
 the field's comment says so.
@@ -35,7 +35,6 @@ class ConvertConfig:
 
 @dataclass(frozen=True)
 class RasterConfig:
-    tile_size: int = 16
     near_plane: float = 0.2                  # cull Gaussians with view-space z <= near_plane
     guard_band: float = 1.3                  # the Jacobian clamps the projected mean to this many half image sizes
                                              # around the image centre (the reference's 1.3 tan(half fov))
@@ -52,7 +51,9 @@ class OptimConfig:
     iterations: int = 30_000
     position_lr_init: float = 1.6e-4         # times the scene extent
     position_lr_final: float = 1.6e-6        # times the scene extent
-    position_lr_delay_mult: float = 0.01
+    position_lr_delay_steps: int = 0         # ramp the position rate up from delay_mult times its value over this many
+    position_lr_delay_mult: float = 0.01     # steps; the reference never passes its delay steps (0), so its 0.01 has
+                                             # no effect by default
     position_lr_max_steps: int = 30_000
     feature_lr: float = 2.5e-3               # SH DC; the higher bands use feature_lr / 20
     opacity_lr: float = 0.05                 # the paper's value (the 2024 revision of the reference code uses 0.025)
@@ -125,12 +126,17 @@ class TrainConfig:
 
         return dataclasses.asdict(self)
 
+    # Fields that existed in earlier versions and were removed because they had no effect; a saved config.json that
+    # still names them loads (the values are ignored).
+    RETIRED = {"RasterConfig": ("tile_size",)}
+
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
         import dataclasses
 
         def build(kind, values):
             names = {f.name: f for f in dataclasses.fields(kind)}
+            values = {k: v for k, v in values.items() if k not in cls.RETIRED.get(kind.__name__, ())}
             unknown = set(values) - set(names)
             if unknown:
                 raise ValueError(f"unknown {kind.__name__} setting(s): {', '.join(sorted(unknown))}")

@@ -17,9 +17,10 @@ import numpy as np
 import pytest
 
 from mi_gaussians.config import DensifyConfig, OptimConfig
-from mi_gaussians.model.gaussians import Gaussians
-from mi_gaussians.optim import optimizer as O
+from mi_gaussians.model.gaussians import PARAMETER_NAMES, Gaussians
+from mi_gaussians.optim.adam import GaussianAdam
 from mi_gaussians.optim.densify import DefaultStrategy, DensifyState
+from mi_gaussians.optim.strategy import StepInfo, Strategy
 
 EXTENT = 2.0           # clone/split boundary: 0.01 * 2 = 0.02; world-size prune: 0.1 * 2 = 0.2
 W = H = 100            # NDC factor 50: pixel gradient 1e-5 -> 5e-4 (dense), 1e-6 -> 5e-5 (not)
@@ -28,14 +29,17 @@ HIGH, LOW = 1e-5, 1e-6
 
 @dataclasses.dataclass
 class FakeOut:
+    """What the strategy reads from a RenderOutput: radii, means2d_grad and the image size (rgb.shape)."""
     radii: "mi.Int32"
     means2d_grad: "mi.Vector2f"
+    rgb: "mi.TensorXf"
 
 
-def fake_out(radii, gx, gy=None) -> FakeOut:
+def fake_out(radii, gx, gy=None, width=W, height=H) -> FakeOut:
     gx = np.asarray(gx, np.float32)
     gy = np.zeros_like(gx) if gy is None else np.asarray(gy, np.float32)
-    return FakeOut(mi.Int32(np.asarray(radii, np.int32)), mi.Vector2f(mi.Float(gx), mi.Float(gy)))
+    return FakeOut(mi.Int32(np.asarray(radii, np.int32)), mi.Vector2f(mi.Float(gx), mi.Float(gy)),
+                   mi.TensorXf(dr.zeros(mi.Float, height * width * 3), (height, width, 3)))
 
 
 def logit(p):
@@ -50,8 +54,8 @@ def quat_to_matrix(q):
 
 
 def build(rows, seed=0):
-    """Gaussians from a list of dicts (sigma: scalar or 3-vector, opacity, optional quat); degree 1 SH. Returns
-    (g, opt) with nonzero Adam moments (t = 5) installed on every parameter."""
+    """Gaussians from a list of dicts (sigma: scalar or 3-vector, opacity, optional quat); degree 1 SH, owned by a
+    GaussianAdam with nonzero Adam moments (t = 5) installed on every parameter."""
     rng = np.random.default_rng(seed)
     n = len(rows)
     sig = np.array([np.broadcast_to(np.asarray(r["sigma"], np.float64), 3) for r in rows])
@@ -59,24 +63,27 @@ def build(rows, seed=0):
     g = Gaussians.from_numpy(rng.normal(size=(n, 3)), np.log(sig), quats,
                              np.array([logit(r["opacity"]) for r in rows]), rng.normal(size=(n, 3)),
                              rng.normal(size=(n, 3, 3)))
-    opt = O.make_optimizer(g, OptimConfig(), EXTENT)
+    params = GaussianAdam(g, OptimConfig(), EXTENT)
     state = {}
-    for key in O.PARAM_KEYS:
-        shape = tuple(opt[key].shape)
+    for key in PARAMETER_NAMES:
+        shape = tuple(params[key].shape)
         state[f"{key}.t"] = np.array([5], np.uint32)
         state[f"{key}.m"] = rng.normal(size=shape).astype(np.float32)
         state[f"{key}.v"] = rng.uniform(0.1, 1.0, size=shape).astype(np.float32)
-    O.import_state(opt, state)
-    O.sync_gaussians(opt, g)
-    return g, opt
+    params.import_moments(state)
+    return params
 
 
-def snapshot(opt) -> dict:
+def snapshot(params) -> dict:
     out = {}
-    for key in O.PARAM_KEYS:
-        t, m, v = O.moments(opt, key)
-        out[key] = dict(value=np.array(opt[key]).reshape(tuple(opt[key].shape)), m=m, v=v, t=t)
+    for key in PARAMETER_NAMES:
+        t, m, v = params.moments(key)
+        out[key] = dict(value=np.array(params[key]).reshape(tuple(params[key].shape)), m=m, v=v, t=t)
     return out
+
+
+def stats(s: DefaultStrategy, st: DensifyState) -> dict:
+    return s.export_state(st)[0]
 
 
 # The crafted scene: (row, pixel gradient x, radius)
@@ -93,25 +100,26 @@ SCENE = [
 
 
 def crafted():
-    g, opt = build([r for r, _, _ in SCENE])
+    params = build([r for r, _, _ in SCENE])
     out = fake_out([r for _, _, r in SCENE], [gx for _, gx, _ in SCENE])
-    return g, opt, out
+    return params, out
 
 
 # ---------------------------------------------------------------------------------------------- statistics
 def test_statistics_ndc_scaling_visibility_and_max_radii():
-    g, opt = build([dict(sigma=0.01, opacity=0.5)] * 3)
+    params = build([dict(sigma=0.01, opacity=0.5)] * 3)
     s = DefaultStrategy(DensifyConfig(), EXTENT)
-    assert s.step_pre_backward() is None
-    info = s.step_post_backward(10, g, opt, fake_out([4, 0, 7], [3e-6, 1.0, -1e-6], [4e-6, 1.0, 2e-6]), 200, 100)
-    assert not info["changed"] and info["n"] == 3
-    st = s.state.numpy()
+    state = s.initialize_state(params.n)
+    info = s.step_post_backward(params, state, 10,
+                                fake_out([4, 0, 7], [3e-6, 1.0, -1e-6], [4e-6, 1.0, 2e-6], width=200, height=100))
+    assert not info.changed and info.n == 3
+    st = stats(s, state)
     # (gx * W/2, gy * H/2) = (3e-4, 2e-4) for W = 200, H = 100
     np.testing.assert_allclose(st["grad_accum"], [math.hypot(3e-4, 2e-4), 0.0, math.hypot(1e-4, 1e-4)], rtol=1e-6)
     np.testing.assert_array_equal(st["denom"], [1, 0, 1])
     np.testing.assert_array_equal(st["max_radii"], [4, 0, 7])
-    s.step_post_backward(11, g, opt, fake_out([2, 9, 8], [0.0, 0.0, 0.0]), 200, 100)
-    st = s.state.numpy()
+    s.step_post_backward(params, state, 11, fake_out([2, 9, 8], [0.0, 0.0, 0.0], width=200, height=100))
+    st = stats(s, state)
     np.testing.assert_array_equal(st["denom"], [2, 1, 2])
     np.testing.assert_array_equal(st["max_radii"], [4, 9, 8])
 
@@ -119,28 +127,31 @@ def test_statistics_ndc_scaling_visibility_and_max_radii():
 def test_mean_gradient_counts_only_visible_iterations():
     """Two visible iterations at 2.5e-4 (NDC) and one invisible one: mean 2.5e-4 >= 2e-4 -> clone (had the
     invisible iteration counted, the mean would be 1.67e-4 and nothing would happen)."""
-    g, opt = build([dict(sigma=0.01, opacity=0.5), dict(sigma=0.01, opacity=0.5)])
+    params = build([dict(sigma=0.01, opacity=0.5), dict(sigma=0.01, opacity=0.5)])
     s = DefaultStrategy(DensifyConfig(), EXTENT)
+    state = s.initialize_state(params.n)
     px = 2.5e-4 / (W / 2)
-    s.step_post_backward(598, g, opt, fake_out([3, 3], [px, px / 2]), W, H)
-    s.step_post_backward(599, g, opt, fake_out([0, 3], [0.0, px / 2]), W, H)
-    info = s.step_post_backward(600, g, opt, fake_out([3, 3], [px, px / 2]), W, H)
-    assert (info["cloned"], info["split"], info["pruned"]) == (1, 0, 0) and g.n == 3
+    s.step_post_backward(params, state, 598, fake_out([3, 3], [px, px / 2]))
+    s.step_post_backward(params, state, 599, fake_out([0, 3], [0.0, px / 2]))
+    info = s.step_post_backward(params, state, 600, fake_out([3, 3], [px, px / 2]))
+    assert (info.cloned, info.split, info.pruned) == (1, 0, 0) and params.n == 3
 
 
 # ---------------------------------------------------------------------------------------------- densify and prune
 def test_clone_split_prune_counts_values_and_moments():
-    g, opt, out = crafted()
-    before = snapshot(opt)
+    params, out = crafted()
+    before = snapshot(params)
     s = DefaultStrategy(DensifyConfig(), EXTENT)
-    info = s.step_post_backward(600, g, opt, out, W, H)
-    assert info == dict(cloned=2, split=1, pruned=3, reset=0, densified=True, opacity_reset=False, changed=True, n=8)
-    after = snapshot(opt)
-    assert g.n == 8 and all(getattr(g, k) is opt[k] for k in O.PARAM_KEYS)
+    state = s.initialize_state(params.n)
+    info = s.step_post_backward(params, state, 600, out)
+    assert info == StepInfo(cloned=2, split=1, pruned=3, reset=0, densified=True, opacity_reset=False, changed=True, n=8)
+    after = snapshot(params)
+    view = params.gaussians
+    assert params.n == 8 and all(getattr(view, k) is params[k] for k in PARAMETER_NAMES)
 
     # layout: kept originals [0, 2, 4, 5, 6], clone of 0, the two children of 1 (clone of 7 and 7 itself pruned)
     kept = [0, 2, 4, 5, 6]
-    for key in O.PARAM_KEYS:
+    for key in PARAMETER_NAMES:
         a, b = after[key], before[key]
         assert a["t"] == 5                                           # the step count carries on
         for f in ("value", "m", "v"):
@@ -158,7 +169,7 @@ def test_clone_split_prune_counts_values_and_moments():
     assert not np.any(np.all(means == parent, axis=1))
     assert np.all(np.abs(means[6:] - parent) < 5 * 0.05) and np.all(means[6] != means[7])
     # statistics reset for all remaining rows
-    st = s.state.numpy()
+    st = stats(s, state)
     assert len(st["grad_accum"]) == 8 and not st["grad_accum"].any() and not st["denom"].any()
     assert not st["max_radii"].any()
 
@@ -166,27 +177,29 @@ def test_clone_split_prune_counts_values_and_moments():
 def test_big_gaussians_pruned_only_after_the_first_reset():
     cfg = DensifyConfig()
     for step, expect in ((3000, False), (3100, True)):
-        g, opt, out = crafted()
+        params, out = crafted()
         s = DefaultStrategy(cfg, EXTENT)
+        state = s.initialize_state(params.n)
         if step == 3100:   # the screen-size test uses the max radius over the interval, not the last one
-            s.step_post_backward(3050, g, opt, out, W, H)
+            s.step_post_backward(params, state, 3050, out)
             out = fake_out([r if i != 6 else 2 for i, (_, _, r) in enumerate(SCENE)], [gx for _, gx, _ in SCENE])
-        before = snapshot(opt)
-        info = s.step_post_backward(step, g, opt, out, W, H)
-        means = snapshot(opt)["means"]["value"]
+        before = snapshot(params)
+        info = s.step_post_backward(params, state, step, out)
+        means = snapshot(params)["means"]["value"]
         present = [bool(np.any(np.all(means == before["means"]["value"][i], axis=1))) for i in (5, 6)]
         if expect:
-            assert info["pruned"] == 5 and present == [False, False]
+            assert info.pruned == 5 and present == [False, False]
         else:
-            assert info["pruned"] == 3 and present == [True, True]
-            assert info["opacity_reset"]
+            assert info.pruned == 3 and present == [True, True]
+            assert info.opacity_reset
 
 
 def test_screen_size_test_can_be_disabled_like_the_reference():
-    g, opt, out = crafted()
+    params, out = crafted()
     s = DefaultStrategy(dataclasses.replace(DensifyConfig(), max_screen_size=float("inf")), EXTENT)
-    info = s.step_post_backward(3100, g, opt, out, W, H)
-    assert info["pruned"] == 4     # 3, 7, clone of 7 and the world-huge 5; the screen-huge 6 stays
+    state = s.initialize_state(params.n)
+    info = s.step_post_backward(params, state, 3100, out)
+    assert info.pruned == 4     # 3, 7, clone of 7 and the world-huge 5; the screen-huge 6 stays
 
 
 def test_split_sampling_statistics():
@@ -194,19 +207,20 @@ def test_split_sampling_statistics():
     k = 20000
     q = np.array([0.8, -0.4, 0.9, 0.3]) * 2.0          # unnormalized on purpose
     sigma = np.array([0.3, 0.1, 0.05])
-    g, opt = build([dict(sigma=sigma, opacity=0.5, quat=q)])
-    centre = np.array(opt["means"]).reshape(3).astype(np.float64)
+    params = build([dict(sigma=sigma, opacity=0.5, quat=q)])
+    centre = np.array(params["means"]).reshape(3).astype(np.float64)
     s = DefaultStrategy(dataclasses.replace(DensifyConfig(), split_count=k), 1.0, seed=3)
-    info = s.step_post_backward(600, g, opt, fake_out([5], [HIGH]), W, H)
-    assert info["split"] == 1 and info["cloned"] == 0 and g.n == k
-    x = np.array(opt["means"]).reshape(k, 3).astype(np.float64)
+    state = s.initialize_state(params.n)
+    info = s.step_post_backward(params, state, 600, fake_out([5], [HIGH]))
+    assert info.split == 1 and info.cloned == 0 and params.n == k
+    x = np.array(params["means"]).reshape(k, 3).astype(np.float64)
     R = quat_to_matrix(q)
     cov_ref = R @ np.diag(sigma ** 2) @ R.T
     L = np.linalg.cholesky(cov_ref)
     z = np.linalg.solve(L, (x - centre).T).T          # whitened: ~ N(0, I)
     assert np.all(np.abs(z.mean(axis=0)) < 5 / math.sqrt(k))
     np.testing.assert_allclose(np.cov(z.T), np.eye(3), atol=5 * math.sqrt(2 / k))
-    np.testing.assert_allclose(np.exp(np.array(opt["scales"]).reshape(k, 3)), np.tile(sigma / 1.6, (k, 1)),
+    np.testing.assert_allclose(np.exp(np.array(params["scales"]).reshape(k, 3)), np.tile(sigma / 1.6, (k, 1)),
                                rtol=1e-5)
     # kurtosis check against a merely decorrelated but non-Gaussian sampler
     np.testing.assert_allclose((z ** 4).mean(axis=0), 3.0, atol=0.2)
@@ -214,11 +228,12 @@ def test_split_sampling_statistics():
 
 def test_split_samples_are_seeded_and_fresh_per_densification():
     def children(seed, calls):
-        g, opt = build([dict(sigma=0.05, opacity=0.5)])
+        params = build([dict(sigma=0.05, opacity=0.5)])
         s = DefaultStrategy(DensifyConfig(), EXTENT, seed=seed)
+        state = s.initialize_state(params.n)
         for step in range(600, 600 + 100 * calls, 100):
-            s.step_post_backward(step, g, opt, fake_out(np.full(g.n, 5), np.full(g.n, HIGH)), W, H)
-        return np.array(opt["means"]).reshape(-1, 3)
+            s.step_post_backward(params, state, step, fake_out(np.full(params.n, 5), np.full(params.n, HIGH)))
+        return np.array(params["means"]).reshape(-1, 3)
 
     a, b, c = children(0, 1), children(0, 1), children(1, 1)
     np.testing.assert_array_equal(a, b)
@@ -230,18 +245,19 @@ def test_split_samples_are_seeded_and_fresh_per_densification():
 # ---------------------------------------------------------------------------------------------- opacity reset
 def test_opacity_reset_values_and_moments():
     ops = [0.5, 0.9, 0.007, 0.011, 0.02]
-    g, opt = build([dict(sigma=0.01, opacity=p) for p in ops])
-    before = snapshot(opt)
+    params = build([dict(sigma=0.01, opacity=p) for p in ops])
+    before = snapshot(params)
     s = DefaultStrategy(DensifyConfig(), EXTENT)
-    info = s.step_post_backward(3000, g, opt, fake_out(np.full(5, 3), np.full(5, LOW)), W, H)
-    assert info["opacity_reset"] and info["densified"] and info["reset"] == 4
-    assert (info["cloned"], info["split"], info["pruned"]) == (0, 0, 0)
-    after = snapshot(opt)
+    state = s.initialize_state(params.n)
+    info = s.step_post_backward(params, state, 3000, fake_out(np.full(5, 3), np.full(5, LOW)))
+    assert info.opacity_reset and info.densified and info.reset == 4
+    assert (info.cloned, info.split, info.pruned) == (0, 0, 0)
+    after = snapshot(params)
     o = after["opacities"]["value"]
     np.testing.assert_allclose(1 / (1 + np.exp(-o.astype(np.float64))), [0.01, 0.01, 0.007, 0.01, 0.01], rtol=1e-5)
     assert o[2] == before["opacities"]["value"][2]                 # already below: untouched
     assert after["opacities"]["t"] == 5 and not after["opacities"]["m"].any() and not after["opacities"]["v"].any()
-    assert g.opacities is opt["opacities"] and dr.grad_enabled(g.opacities)
+    assert params.gaussians.opacities is params["opacities"] and dr.grad_enabled(params["opacities"])
     for key in ("means", "scales", "rotations", "sh_dc", "sh_rest"):  # nothing else touched
         for f in ("value", "m", "v"):
             np.testing.assert_array_equal(after[key][f], before[key][f])
@@ -250,46 +266,55 @@ def test_opacity_reset_values_and_moments():
 @pytest.mark.parametrize("white, step, expect", [(True, 500, True), (False, 500, False), (True, 600, False),
                                                  (False, 6000, True), (False, 15000, False)])
 def test_opacity_reset_schedule(white, step, expect):
-    g, opt = build([dict(sigma=0.01, opacity=0.5)] * 2)
-    s = DefaultStrategy(DensifyConfig(), EXTENT)
-    info = s.step_post_backward(step, g, opt, fake_out([3, 3], [LOW, LOW]), W, H, white_background=white)
-    assert info["opacity_reset"] == expect
-    p = 1 / (1 + np.exp(-np.array(opt["opacities"], np.float64)))
+    params = build([dict(sigma=0.01, opacity=0.5)] * 2)
+    s = DefaultStrategy(DensifyConfig(), EXTENT, white_background=white)
+    info = s.step_post_backward(params, s.initialize_state(params.n), step, fake_out([3, 3], [LOW, LOW]))
+    assert info.opacity_reset == expect
+    p = 1 / (1 + np.exp(-np.array(params["opacities"], np.float64)))
     np.testing.assert_allclose(p, 0.01 if expect else 0.5, rtol=1e-5)
 
 
 def test_nothing_happens_from_densify_until_iter_on():
-    g, opt, out = crafted()
+    params, out = crafted()
     s = DefaultStrategy(DensifyConfig(), EXTENT)
+    state = s.initialize_state(params.n)
     for step in (15000, 15100, 18000):
-        info = s.step_post_backward(step, g, opt, out, W, H)
-        assert not info["changed"] and g.n == 8
-    assert s.state is None       # no statistics either
-    info = s.step_post_backward(14900, g, opt, out, W, H)
-    assert info["densified"] and info["cloned"] == 2
+        info = s.step_post_backward(params, state, step, out)
+        assert not info.changed and params.n == 8
+    assert not stats(s, state)["denom"].any()       # no statistics either
+    info = s.step_post_backward(params, state, 14900, out)
+    assert info.densified and info.cloned == 2
 
 
 def test_densification_schedule_and_state_size_check():
-    g, opt, out = crafted()
+    params, out = crafted()
     s = DefaultStrategy(DensifyConfig(), EXTENT)
-    assert not s.step_post_backward(500, g, opt, out, W, H)["densified"]   # iteration > densify_from_iter only
-    assert not s.step_post_backward(550, g, opt, out, W, H)["densified"]
-    assert s.state.numpy()["denom"].tolist() == [2, 2, 2, 2, 0, 2, 2, 2]
-    with pytest.raises(ValueError):
-        s.step_post_backward(551, g, opt, fake_out([1, 1], [0.0, 0.0]), W, H)
+    state = s.initialize_state(params.n)
+    assert not s.step_post_backward(params, state, 500, out).densified   # iteration > densify_from_iter only
+    assert not s.step_post_backward(params, state, 550, out).densified
+    assert stats(s, state)["denom"].tolist() == [2, 2, 2, 2, 0, 2, 2, 2]
+    with pytest.raises(ValueError, match="render output has 2"):
+        s.step_post_backward(params, state, 551, fake_out([1, 1], [0.0, 0.0]))
+    with pytest.raises(ValueError, match="statistics cover 3"):
+        s.step_post_backward(params, s.initialize_state(3), 552, out)
 
 
 def test_state_export_import():
-    g, opt, out = crafted()
+    params, out = crafted()
     s = DefaultStrategy(DensifyConfig(), EXTENT, seed=4)
-    s.step_post_backward(600, g, opt, out, W, H)
-    s.step_post_backward(601, g, opt, fake_out(np.full(8, 6), np.full(8, LOW)), W, H)
-    arrays, meta = s.export_state(), s.export_meta()
+    state = s.initialize_state(params.n)
+    s.step_post_backward(params, state, 600, out)
+    s.step_post_backward(params, state, 601, fake_out(np.full(8, 6), np.full(8, HIGH * 2, np.float32)))
+    arrays, meta = s.export_state(state)
+    assert arrays["denom"].tolist() == [1] * 8 and arrays["grad_accum"].max() > 0 and arrays["max_radii"].max() == 6
     s2 = DefaultStrategy(DensifyConfig(), EXTENT)
-    s2.import_state(arrays, meta)
-    assert s2.seed == 4 and s2.draws == 1 and isinstance(s2.state, DensifyState)
-    for k, v in s2.state.numpy().items():
+    state2 = s2.import_state(arrays, meta, params.n)
+    assert s2.seed == 4 and state2.draws == state.draws == 1 and isinstance(state2, DensifyState)
+    for k, v in stats(s2, state2).items():
         np.testing.assert_array_equal(v, arrays[k])
+    assert stats(s2, s2.import_state({}, {}, 5))["denom"].tolist() == [0] * 5     # no saved statistics: fresh
+    with pytest.raises(ValueError, match="lengths"):
+        s2.import_state(arrays, meta, 9)
 
 
 # ---------------------------------------------------------------------------------------------- real renderer
@@ -305,41 +330,42 @@ def test_with_the_real_rasterizer():
     means[-1] = (0.0, 0.0, -3.0)        # behind the camera: radius 0, never accumulated
     g = Gaussians.from_numpy(means, np.full((n, 3), math.log(0.1)), np.tile([1.0, 0, 0, 0], (n, 1)),
                              np.full(n, 0.5), rng.normal(size=(n, 3)), np.zeros((n, 3, 3)))
-    opt = O.make_optimizer(g, OptimConfig(), 1.0)
-    O.sync_gaussians(opt, g)
+    params = GaussianAdam(g, OptimConfig(), 1.0)
     cfg = dataclasses.replace(DensifyConfig(), grad_threshold=1e-12)   # densify every visible Gaussian
     s = DefaultStrategy(cfg, 1.0)
+    state = s.initialize_state(params.n)
     for step in (599, 600):
-        out = render(g, cam)
+        out = render(params.gaussians, cam)
+        s.step_pre_backward(params, state, step, out)
         dr.backward(dr.mean(dr.square(out.rgb.array - 0.25)))
-        info = s.step_post_backward(step, g, opt, out, cam.width, cam.height)
+        info = s.step_post_backward(params, state, step, out)
         if step == 599:
-            st = s.state.numpy()
+            st = stats(s, state)
             assert np.all(st["grad_accum"][:-1] > 0) and st["denom"][-1] == 0 and st["max_radii"][-1] == 0
-            opt.step()
-            O.sync_gaussians(opt, g)
-    assert info["split"] == n - 1 and info["cloned"] == 0 and g.n == n + (n - 1)   # sigma 0.1 > 0.01: split
-    out = render(g, cam)
+            params.step()
+    assert info.split == n - 1 and info.cloned == 0 and params.n == n + (n - 1)   # sigma 0.1 > 0.01: split
+    out = render(params.gaussians, cam)
     dr.backward(dr.mean(dr.square(out.rgb.array - 0.25)))
-    opt.step()
-    O.sync_gaussians(opt, g)
-    assert dr.width(out.radii) == g.n and np.all(np.isfinite(np.array(opt["means"])))
+    params.step()
+    assert dr.width(out.radii) == params.n and np.all(np.isfinite(np.array(params["means"])))
 
 
 def test_gradients_cleared_on_every_densification_iteration():
     """Even when nothing is cloned, split or pruned, a densification iteration leaves no gradient behind (the trainer
-    skips opt.step() then, and a stale gradient would be added to the next backward pass)."""
-    g, opt = build([dict(sigma=0.01, opacity=0.5)] * 3)
+    skips the Adam step then, and a stale gradient would be added to the next backward pass)."""
+    params = build([dict(sigma=0.01, opacity=0.5)] * 3)
     s = DefaultStrategy(DensifyConfig(), EXTENT)
+    state = s.initialize_state(params.n)
     for step, changed in ((650, False), (700, True)):
+        g = params.gaussians
         dr.backward(dr.sum(dr.square(g.means.array)) + dr.sum(g.opacities.array) + dr.sum(g.sh_rest.array))
-        before = snapshot(opt)
-        info = s.step_post_backward(step, g, opt, fake_out([3, 3, 3], [LOW] * 3), W, H)
-        assert info["changed"] == changed and (info["cloned"], info["split"], info["pruned"]) == (0, 0, 0)
+        before = snapshot(params)
+        info = s.step_post_backward(params, state, step, fake_out([3, 3, 3], [LOW] * 3))
+        assert info.changed == changed and (info.cloned, info.split, info.pruned) == (0, 0, 0)
         if not changed:
-            assert np.array(dr.grad(opt["means"])).any() and np.array(dr.grad(opt["sh_rest"])).any()
+            assert np.array(dr.grad(params["means"])).any() and np.array(dr.grad(params["sh_rest"])).any()
             continue
-        for key in O.PARAM_KEYS:
-            assert not np.array(dr.grad(opt[key])).any()
-            assert opt[key] is getattr(g, key)
-            np.testing.assert_array_equal(snapshot(opt)[key]["m"], before[key]["m"])   # moments untouched
+        for key in PARAMETER_NAMES:
+            assert not np.array(dr.grad(params[key])).any()
+            assert params[key] is getattr(params.gaussians, key)
+            np.testing.assert_array_equal(snapshot(params)[key]["m"], before[key]["m"])   # moments untouched

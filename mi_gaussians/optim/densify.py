@@ -1,17 +1,17 @@
 """Adaptive density control of 3DGS (clone, split, prune, opacity reset) as a gsplat-style strategy.
 
-    strategy = DefaultStrategy(cfg.densify, extent, seed=0)
+    strategy = DefaultStrategy(cfg.densify, extent, seed=0, white_background=...)
+    state = strategy.initialize_state(params.n)    # the caller owns the state (and checkpoints it)
     for step in range(1, iterations + 1):          # 1-based, like the reference's ``iteration``
-        out = render(g, cam); dr.backward(loss)
-        info = strategy.step_post_backward(step, g, opt, out, W, H, white_background=...)
-        if not info["changed"]:
-            opt.step()                             # see "Calling order" below
-        sync_gaussians(opt, g)
+        out = render(params.gaussians, cam); dr.backward(loss)
+        info = strategy.step_post_backward(params, state, step, out)
+        if not info.changed:
+            params.step()                          # see "Calling order" below
 
-The strategy only reads ``out.radii`` (``Int32`` (N,), 0 = not visible) and ``out.means2d_grad`` (``Vector2f`` (N,),
-dL/d(projected mean) in pixels) from the render output, and reads/changes the parameters through the optimizer
-(``opt`` is the source of truth; every row change goes through :mod:`.optimizer`, which carries the Adam moments, and
-``g`` is re-synchronized at the end).
+The strategy implements :class:`~.strategy.Strategy`. It only reads ``out.radii`` (``Int32`` (N,), 0 = not visible),
+``out.means2d_grad`` (``Vector2f`` (N,), dL/d(projected mean) in pixels) and the image size from the render output,
+and reads and changes the parameters through their owner ``params`` (:class:`~.adam.GaussianAdam`), whose row
+operations carry the Adam moments.
 
 Rules (the reference ``train.py`` / ``densify_and_prune``; ``step`` is the 1-based iteration)::
 
@@ -53,6 +53,9 @@ those iterations; the ``changed`` flag of the returned info lets the trainer do 
 a fresh Dr.Jit leaf with zero gradient (gradients are not carried: see :mod:`.optimizer`). A trainer that steps anyway
 leaves new rows and reset opacities exactly in place (zero gradient, zero moments); kept rows would coast on their
 decayed momentum.
+
+Random numbers: the split samples of each densification come from a new PCG32 stream keyed by the strategy's seed and
+a counter kept in the state (``draws``), so a resumed run draws the same samples.
 """
 
 from __future__ import annotations
@@ -65,14 +68,14 @@ import mitsuba as mi
 import numpy as np
 
 from ..config import DensifyConfig
-from ..model.gaussians import Gaussians
-from ..raster.mathops import fmax
-from . import optimizer as ostate
+from ..drjit_utils import fmax, owned_array, quaternion_to_matrix, sigmoid
+from .adam import GaussianAdam, concat, gather_rows
+from .strategy import StepInfo, Strategy
 
 
 @dataclass
 class DensifyState:
-    """Running statistics per Gaussian (Dr.Jit arrays, width N).
+    """Running statistics per Gaussian (Dr.Jit arrays, width N) and the split samples' stream counter.
 
     Kept in Dr.Jit rather than NumPy: the per-iteration update is three element-wise selects on arrays the renderer
     already holds on the device; in Dr.Jit they are scheduled and fused into the next kernel launch with no host
@@ -81,19 +84,16 @@ class DensifyState:
     grad_accum: "mi.Float"      # sum of NDC-space |dL/d mean2d| over the iterations where the Gaussian was visible
     denom: "mi.Float"           # number of those iterations
     max_radii: "mi.Int32"       # largest screen radius (px) seen
+    draws: int = 0              # densifications that drew split samples (the random stream's counter)
 
     @property
     def n(self) -> int:
         return dr.width(self.grad_accum)
 
-    def numpy(self) -> dict[str, np.ndarray]:
-        return {"grad_accum": np.array(self.grad_accum, dtype=np.float32),
-                "denom": np.array(self.denom, dtype=np.float32),
-                "max_radii": np.array(self.max_radii, dtype=np.int32)}
-
-
-def _sigmoid(x):
-    return dr.rcp(1.0 + dr.exp(-x))
+    def reset(self, n: int) -> None:
+        """Zero statistics for ``n`` Gaussians (the counter carries on)."""
+        self.grad_accum, self.denom = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
+        self.max_radii = dr.zeros(mi.Int32, n)
 
 
 def _rows3(t) -> "mi.Vector3f":
@@ -105,115 +105,86 @@ def _max3(v):
     return fmax(fmax(v.x, v.y), v.z)
 
 
-def _rotation(q_flat) -> "mi.Matrix3f":
-    """Rotation matrices of (w, x, y, z) quaternions given as a flat (N*4) array (normalized here, like the
-    reference's ``build_rotation``)."""
-    q = dr.unravel(mi.Vector4f, q_flat)
-    q = q * dr.rsqrt(fmax(dr.squared_norm(q), 1e-24))
-    w, x, y, z = q.x, q.y, q.z, q.w
-    return mi.Matrix3f(
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
+def _count(mask) -> int:
+    c = dr.count(mask)
+    return int(c[0]) if dr.is_array_v(c) else int(c)
 
 
-class DefaultStrategy:
-    """The reference 3DGS densification (see the module docstring). ``extent``: the scene extent (``Dataset.extent``).
+class DefaultStrategy(Strategy):
+    """The reference 3DGS densification (see the module docstring). ``extent``: the scene extent
+    (``Dataset.extent``); ``seed``: of the split samples; ``white_background``: the reference also resets the
+    opacities at ``densify_from_iter`` when it trains on a white background."""
 
-    Holds the running statistics (``self.state``, a :class:`DensifyState` made on the first call) and the random
-    stream of the split samples (seeded by ``seed``; each densification draws from a new, counted stream so a resumed
-    run draws the same samples)."""
-
-    def __init__(self, cfg: DensifyConfig, extent: float, seed: int = 0):
+    def __init__(self, cfg: DensifyConfig, extent: float, seed: int = 0, white_background: bool = False):
         if cfg.split_count < 1:
             raise ValueError("split_count must be >= 1")
         self.cfg = cfg
         self.extent = float(extent)
         self.seed = int(seed)
-        self.draws = 0                       # densifications that drew split samples (the random stream's counter)
-        self.state: DensifyState | None = None
+        self.white_background = bool(white_background)
 
     # ------------------------------------------------------------------ state
-    @staticmethod
-    def initial_state(n: int) -> DensifyState:
-        return DensifyState(grad_accum=dr.zeros(mi.Float, n), denom=dr.zeros(mi.Float, n),
-                            max_radii=dr.zeros(mi.Int32, n))
+    def initialize_state(self, n: int) -> DensifyState:
+        state = DensifyState(grad_accum=None, denom=None, max_radii=None)
+        state.reset(n)
+        return state
 
-    def _state_for(self, n: int) -> DensifyState:
-        if self.state is None:
-            self.state = self.initial_state(n)
-        elif self.state.n != n:
-            raise ValueError(f"densification statistics cover {self.state.n} Gaussians but the model has {n}: "
-                             "change rows only through the strategy (or reset it with strategy.state = None)")
-        return self.state
+    def export_state(self, state: DensifyState) -> tuple[dict[str, np.ndarray], dict]:
+        arrays = {"grad_accum": np.array(state.grad_accum, dtype=np.float32),
+                  "denom": np.array(state.denom, dtype=np.float32),
+                  "max_radii": np.array(state.max_radii, dtype=np.int32)}
+        return arrays, {"seed": self.seed, "draws": state.draws}
 
-    def export_state(self) -> dict[str, np.ndarray]:
-        """The statistics as NumPy arrays (for a checkpoint); empty before the first call."""
-        return {} if self.state is None else self.state.numpy()
-
-    def export_meta(self) -> dict:
-        return {"seed": self.seed, "draws": self.draws}
-
-    def import_state(self, arrays: dict, meta: dict | None = None) -> None:
+    def import_state(self, arrays: dict, meta: dict, n: int) -> DensifyState:
+        state = self.initialize_state(n)
         if arrays:
-            n = len(arrays["grad_accum"])
-            if len(arrays["denom"]) != n or len(arrays["max_radii"]) != n:
-                raise ValueError("densification statistics of different lengths")
-            self.state = DensifyState(
-                grad_accum=ostate._owned(mi.Float, np.asarray(arrays["grad_accum"], np.float32)),
-                denom=ostate._owned(mi.Float, np.asarray(arrays["denom"], np.float32)),
-                max_radii=ostate._owned(mi.Int32, np.asarray(arrays["max_radii"], np.int32)))
-            dr.eval(self.state.grad_accum, self.state.denom, self.state.max_radii)
-        else:
-            self.state = None
+            lengths = {len(arrays[k]) for k in ("grad_accum", "denom", "max_radii")}
+            if lengths != {n}:
+                raise ValueError(f"densification statistics of lengths {sorted(lengths)} for {n} Gaussians")
+            state.grad_accum = owned_array(mi.Float, np.asarray(arrays["grad_accum"], np.float32))
+            state.denom = owned_array(mi.Float, np.asarray(arrays["denom"], np.float32))
+            state.max_radii = owned_array(mi.Int32, np.asarray(arrays["max_radii"], np.int32))
+            dr.eval(state.grad_accum, state.denom, state.max_radii)
         if meta:
             self.seed = int(meta.get("seed", self.seed))
-            self.draws = int(meta.get("draws", 0))
+            state.draws = int(meta.get("draws", 0))
+        return state
 
-    # ------------------------------------------------------------------ hooks
-    def step_pre_backward(self, *args, **kwargs) -> None:
-        """No-op. gsplat uses this hook to ask for the gradient of the projected means; our rasterizer always
-        records it (``RenderOutput.means2d_grad``), so there is nothing to do before the backward pass."""
-        return None
-
-    def step_post_backward(self, step: int, g: Gaussians, opt, out, width: int, height: int,
-                           white_background: bool = False) -> dict:
+    # ------------------------------------------------------------------ hook
+    def step_post_backward(self, params: GaussianAdam, state: DensifyState, step: int, out) -> StepInfo:
         """Update the statistics and, on the scheduled iterations, densify / prune / reset opacities.
 
-        Returns ``{"cloned", "split", "pruned", "reset", "densified", "opacity_reset", "changed", "n"}``:
-        counts of Gaussians cloned, split (originals), pruned (by the prune tests), opacities lowered by the reset;
-        whether a densification / opacity reset ran; ``changed``: either ran, so the reference's Adam step would skip
-        its rebuilt parameters: every parameter's gradient has been cleared and the trainer should skip
-        ``opt.step()``; ``n``: the number of Gaussians afterwards. Counts are read back only on those iterations."""
+        Counts are read back only on those iterations. When rows or values were rebuilt (``info.changed``) every
+        parameter's gradient has been cleared and the trainer should skip the Adam step (see the module docstring)."""
         cfg = self.cfg
-        n = ostate._num_rows(opt)
-        info = {"cloned": 0, "split": 0, "pruned": 0, "reset": 0, "densified": False, "opacity_reset": False,
-                "changed": False, "n": n}
+        info = StepInfo(n=params.n)
         if step >= cfg.densify_until_iter:
             return info
-        st = self._state_for(n)
-        self._accumulate(st, out, width, height)
+        if state.n != params.n:
+            raise ValueError(f"densification statistics cover {state.n} Gaussians but the model has {params.n}: "
+                             "change rows only through the strategy")
+        self._accumulate(state, out)
 
         if step > cfg.densify_from_iter and step % cfg.densification_interval == 0:
-            info.update(self._densify_and_prune(step, opt))
-            info["densified"] = info["changed"] = True
-        if step % cfg.opacity_reset_interval == 0 or (white_background and step == cfg.densify_from_iter):
-            info["reset"] = self._reset_opacity(opt)
-            info["opacity_reset"] = info["changed"] = True
-        if info["changed"]:
+            info.cloned, info.split, info.pruned = self._densify_and_prune(params, state, step)
+            info.densified = info.changed = True
+        if step % cfg.opacity_reset_interval == 0 or (self.white_background and step == cfg.densify_from_iter):
+            info.reset = self._reset_opacity(params)
+            info.opacity_reset = info.changed = True
+        if info.changed:
             # The reference rebuilds every parameter on a densification iteration (and opacity on a reset), so they
             # have no gradient and its Adam step skips them. Rows that were not rewritten here still hold this
             # iteration's gradient: clear it, or a trainer that skips the step would add it to the next backward pass.
-            ostate.clear_grads(opt)
-            ostate.sync_gaussians(opt, g)
-            info["n"] = ostate._num_rows(opt)
+            params.clear_grads()
+            info.n = params.n
         return info
 
     # ------------------------------------------------------------------ pieces
-    def _accumulate(self, st: DensifyState, out, width: int, height: int) -> None:
+    def _accumulate(self, st: DensifyState, out) -> None:
         radii = out.radii
         if dr.width(radii) != st.n:
             raise ValueError(f"render output has {dr.width(radii)} Gaussians, the statistics {st.n}")
+        height, width = int(out.rgb.shape[0]), int(out.rgb.shape[1])
         grad = dr.detach(out.means2d_grad)
         # the reference rasterizer reports dL/d(mean2d) in NDC units: pixel gradient times W/2 and H/2
         gx = grad.x * dr.opaque(mi.Float, 0.5 * float(width))
@@ -225,21 +196,22 @@ class DefaultStrategy:
         # evaluated with the next kernel launch (the optimizer step's dr.eval), without a sync here
         dr.schedule(st.grad_accum, st.denom, st.max_radii)
 
-    def _split_normals(self, m: int) -> "mi.Vector3f":
-        """m standard-normal 3-vectors from this strategy's counted random stream."""
-        state = ((self.seed & 0xFFFFFFFF) << 32) | (self.draws & 0xFFFFFFFF)
-        self.draws += 1
-        rng = mi.PCG32(size=m, initstate=dr.opaque(mi.UInt64, state), initseq=dr.arange(mi.UInt64, m))
+    def _split_normals(self, st: DensifyState, m: int) -> "mi.Vector3f":
+        """m standard-normal 3-vectors from this densification's counted random stream."""
+        key = ((self.seed & 0xFFFFFFFF) << 32) | (st.draws & 0xFFFFFFFF)
+        st.draws += 1
+        rng = mi.PCG32(size=m, initstate=dr.opaque(mi.UInt64, key), initseq=dr.arange(mi.UInt64, m))
         u = [rng.next_float32() for _ in range(4)]
         a = mi.warp.square_to_std_normal(mi.Point2f(u[0], u[1]))
         b = mi.warp.square_to_std_normal(mi.Point2f(u[2], u[3]))
         return mi.Vector3f(a.x, a.y, b.x)
 
-    def _densify_and_prune(self, step: int, opt) -> dict:
-        cfg, st = self.cfg, self.state
+    def _densify_and_prune(self, params: GaussianAdam, st: DensifyState, step: int) -> tuple[int, int, int]:
+        """Clone, split and prune; returns the counts (cloned, split originals, pruned)."""
+        cfg = self.cfg
         n = st.n
         dense = float(cfg.percent_dense) * self.extent
-        sigma_max = _max3(dr.exp(_rows3(opt["scales"])))
+        sigma_max = _max3(dr.exp(_rows3(params["scales"])))
         grads = dr.select(st.denom > 0, st.grad_accum / st.denom, 0.0)
         high = grads >= float(cfg.grad_threshold)
         clone_idx = dr.compress(high & (sigma_max <= dense))
@@ -251,55 +223,57 @@ class DefaultStrategy:
         # ---- new rows: clones (exact copies), then the children of the split Gaussians, copy-major like torch's
         # .repeat(k, 1) in the reference
         child_src = dr.tile(split_idx, k) if n_split else split_idx   # (dr.tile fails on width 0)
-        src = ostate.concat([clone_idx, child_src])
+        src = concat([clone_idx, child_src])
         max_radii = st.max_radii
         if dr.width(src):
-            new_rows = {}
-            for key, (value, _, _, _) in opt.state.items():
-                rs = ostate._row_size(value)
-                flat = ostate._gather_rows(value.array, src, rs)
-                new_rows[key] = type(value)(flat, (dr.width(src),) + tuple(value.shape[1:]))
+            new_rows = params.rows(src)
             if n_split:
-                m = n_split * k
-                means_c = dr.gather(mi.Vector3f, dr.detach(opt["means"].array), child_src)
-                scales_c = dr.gather(mi.Vector3f, dr.detach(opt["scales"].array), child_src)
-                quats_c = dr.gather(mi.Float, dr.detach(opt["rotations"].array), ostate._flat_index(child_src, 4))
-                sigma_c = dr.exp(scales_c)
-                child_means = means_c + _rotation(quats_c) @ (sigma_c * self._split_normals(m))
-                child_scales = dr.log(sigma_c / float(cfg.split_scale_divisor))
-                for key, vals in (("means", child_means), ("scales", child_scales)):
-                    head = ostate._gather_rows(opt[key].array, clone_idx, 3)
-                    new_rows[key] = mi.TensorXf(ostate.concat([head, dr.ravel(vals)]), (n_clone + m, 3))
-            ostate.append(opt, new_rows)
-            max_radii = ostate.concat([max_radii, dr.gather(mi.Int32, max_radii, src)])
+                new_rows.update(self._split_children(params, st, clone_idx, child_src))
+            params.append(new_rows)
+            max_radii = concat([max_radii, dr.gather(mi.Int32, max_radii, src)])
 
         # ---- prune (over every row, new ones included, as the reference) and remove the split originals
         n_all = n + dr.width(src)
-        prune = _sigmoid(dr.detach(opt["opacities"].array)) < float(cfg.min_opacity)
+        prune = sigmoid(dr.detach(params["opacities"].array)) < float(cfg.min_opacity)
         if step > cfg.opacity_reset_interval:
             big_screen = mi.Float(max_radii) > float(cfg.max_screen_size)   # dead code in the reference (see top)
-            big_world = _max3(dr.exp(_rows3(opt["scales"]))) > float(cfg.max_world_scale) * self.extent
+            big_world = _max3(dr.exp(_rows3(params["scales"]))) > float(cfg.max_world_scale) * self.extent
             prune = prune | big_screen | big_world
-        is_split = ostate.concat([split_mask, dr.zeros(mi.Bool, n_all - n)])
+        is_split = concat([split_mask, dr.zeros(mi.Bool, n_all - n)])
         remove = prune | is_split
-        n_pruned = dr.count(prune & ~is_split)
-        n_pruned = int(n_pruned[0]) if dr.is_array_v(n_pruned) else int(n_pruned)
+        n_pruned = _count(prune & ~is_split)
         if n_pruned or n_split:
-            ostate.prune(opt, ~remove)
+            params.keep(~remove)
 
-        self.state = self.initial_state(ostate._num_rows(opt))
-        return {"cloned": n_clone, "split": n_split, "pruned": n_pruned}
+        st.reset(params.n)
+        return n_clone, n_split, n_pruned
 
-    def _reset_opacity(self, opt) -> int:
+    def _split_children(self, params: GaussianAdam, st: DensifyState, clone_idx, child_src) -> dict:
+        """Means and scales of the new rows [clones, children of ``child_src``]: clones copied, children sampled from
+        their source Gaussian with scales divided by ``split_scale_divisor``."""
+        m = dr.width(child_src)
+        means_c = dr.gather(mi.Vector3f, dr.detach(params["means"].array), child_src)
+        scales_c = dr.gather(mi.Vector3f, dr.detach(params["scales"].array), child_src)
+        quats_c = dr.gather(mi.Vector4f, dr.detach(params["rotations"].array), child_src)
+        sigma_c = dr.exp(scales_c)
+        child_means = means_c + quaternion_to_matrix(quats_c) @ (sigma_c * self._split_normals(st, m))
+        child_scales = dr.log(sigma_c / float(self.cfg.split_scale_divisor))
+        n_clone = dr.width(clone_idx)
+        out = {}
+        for key, vals in (("means", child_means), ("scales", child_scales)):
+            head = gather_rows(params[key].array, clone_idx, 3)
+            out[key] = mi.TensorXf(concat([head, dr.ravel(vals)]), (n_clone + m, 3))
+        return out
+
+    def _reset_opacity(self, params: GaussianAdam) -> int:
         """opacity = min(opacity, reset_opacity) in logit space, opacity's Adam moments zeroed; returns how many
         Gaussians were lowered."""
         r = float(self.cfg.reset_opacity)
-        o = dr.detach(opt["opacities"])
-        lower = _sigmoid(o.array) >= r
+        o = dr.detach(params["opacities"])
+        lower = sigmoid(o.array) >= r
         # Logits already below stay bit-identical (the reference's sigmoid/logit round trip differs by rounding only)
         new = dr.select(lower, math.log(r / (1.0 - r)), o.array)
-        ostate.replace_values(opt, "opacities", mi.TensorXf(new, tuple(o.shape)))
-        ostate.reset_moments(opt, "opacities")
-        dr.eval(opt.state["opacities"])
-        cnt = dr.count(lower)
-        return int(cnt[0]) if dr.is_array_v(cnt) else int(cnt)
+        params.replace("opacities", mi.TensorXf(new, tuple(o.shape)))
+        params.reset_moments("opacities")
+        dr.eval(params["opacities"])
+        return _count(lower)

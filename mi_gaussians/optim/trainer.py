@@ -29,12 +29,12 @@ import numpy as np
 from ..config import TrainConfig
 from ..data.dataset import Dataset
 from ..drjit_utils import owned_tensor
-from ..evaluate import evaluate_views, summarize
+from ..evaluate import evaluate_views, scores_report, summarize
 from ..io_utils import atomic_path
 from ..model.gaussians import Gaussians
 from ..raster.rasterize import render
 from .. import report
-from . import optimizer as optim_state
+from .adam import GaussianAdam
 from .densify import DefaultStrategy
 from .losses import photometric_loss
 from .schedules import expon_lr, sh_degree_at
@@ -106,25 +106,32 @@ class Trainer:
         self.transparency = None
         if cfg.optim.random_background:
             self.transparency = [owned_tensor(1.0 - v.load_alpha()[..., None]) for v in ds.train]
-        self.g = initial_gaussians(ds, cfg.optim.sh_degree)
-        self.opt = optim_state.make_optimizer(self.g, cfg.optim, self.extent)
-        self.strategy = DefaultStrategy(cfg.densify, self.extent, seed=cfg.seed + 2)
+        self.params = GaussianAdam(initial_gaussians(ds, cfg.optim.sh_degree), cfg.optim, self.extent)
+        self.strategy = DefaultStrategy(cfg.densify, self.extent, seed=cfg.seed + 2,
+                                        white_background=self.background == (1.0, 1.0, 1.0))
+        self.strategy_state = self.strategy.initialize_state(self.params.n)
+
+    @property
+    def gaussians(self) -> Gaussians:
+        """The model being trained (a view of the optimizer's tensors)."""
+        return self.params.gaussians
 
     # ------------------------------------------------------------------ checkpoints
     def save_checkpoint(self) -> None:
-        params = self.g.numpy()
-        for k, v in params.items():
+        values = self.gaussians.numpy()
+        for k, v in values.items():
             if not np.all(np.isfinite(v)):
                 raise TrainingDiverged(f"parameter {k!r} became non-finite at iteration {self.step}; "
                                        f"the last good checkpoint ({self.out / CHECKPOINT}) is kept")
-        arrays = {f"param/{k}": v for k, v in params.items()}
-        for k, v in optim_state.export_state(self.opt).items():
+        arrays = {f"param/{k}": v for k, v in values.items()}
+        for k, v in self.params.export_moments().items():
             arrays[f"adam/{k}"] = v
-        for k, v in self.strategy.export_state().items():
+        stats, strategy_meta = self.strategy.export_state(self.strategy_state)
+        for k, v in stats.items():
             arrays[f"densify/{k}"] = v
         meta = {"step": self.step, "elapsed": self.elapsed, "history": self.history.to_dict(),
                 "sampler": self.sampler.state(), "bg_rng": self.bg_rng.bit_generator.state,
-                "strategy": self.strategy.export_meta(), "config": self.cfg.to_dict()}
+                "strategy": strategy_meta, "config": self.cfg.to_dict()}
         arrays["meta"] = np.frombuffer(json.dumps(meta).encode("utf-8"), dtype=np.uint8)
         path = self.out / CHECKPOINT
         with atomic_path(path, suffix=".npz") as tmp:
@@ -141,13 +148,15 @@ class Trainer:
             meta = json.loads(bytes(data.pop("meta")).decode("utf-8"))
         except Exception as e:
             raise ValueError(f"{path}: unreadable checkpoint ({e})") from None
-        params = {k.split("/", 1)[1]: v for k, v in data.items() if k.startswith("param/")}
-        self.g = Gaussians.from_numpy(**params)
-        self.opt = optim_state.make_optimizer(self.g, self.cfg.optim, self.extent)
-        optim_state.import_state(self.opt, {k.split("/", 1)[1]: v for k, v in data.items() if k.startswith("adam/")})
-        optim_state.sync_gaussians(self.opt, self.g)
-        self.strategy.import_state({k.split("/", 1)[1]: v for k, v in data.items() if k.startswith("densify/")},
-                                   meta["strategy"])
+        def section(prefix):
+            return {k.split("/", 1)[1]: v for k, v in data.items() if k.startswith(prefix + "/")}
+
+        try:
+            self.params = GaussianAdam(Gaussians.from_numpy(**section("param")), self.cfg.optim, self.extent)
+            self.params.import_moments(section("adam"))
+            self.strategy_state = self.strategy.import_state(section("densify"), meta["strategy"], self.params.n)
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"{path}: checkpoint does not fit this run ({e})") from None
         self.step = int(meta["step"])
         self.elapsed = float(meta["elapsed"])
         self.history = History(**meta["history"])
@@ -166,38 +175,36 @@ class Trainer:
     # ------------------------------------------------------------------ one iteration
     def _iteration(self, step: int) -> float:
         cfg = self.cfg
-        optim_state.set_position_lr(self.opt, self.extent * expon_lr(
-            step, cfg.optim.position_lr_init, cfg.optim.position_lr_final, cfg.optim.position_lr_max_steps,
-            delay_mult=cfg.optim.position_lr_delay_mult))
-        degree = sh_degree_at(step, self.g.sh_degree, cfg.optim.sh_increase_interval)
+        o = cfg.optim
+        self.params.set_learning_rate("means", self.extent * expon_lr(
+            step, o.position_lr_init, o.position_lr_final, o.position_lr_max_steps,
+            delay_steps=o.position_lr_delay_steps, delay_mult=o.position_lr_delay_mult))
+        g = self.params.gaussians
+        degree = sh_degree_at(step, g.sh_degree, o.sh_increase_interval)
         idx = self.sampler.next()
         view = self.ds.train[idx]
-        bg = tuple(self.bg_rng.random(3)) if cfg.optim.random_background else self.background
-        optim_state.sync_gaussians(self.opt, self.g)
-        out = render(self.g, view.camera, background=bg, sh_degree=degree, cfg=cfg.raster)
-        loss = photometric_loss(out.rgb, self.target(idx, bg), cfg.optim.lambda_dssim)
+        bg = tuple(self.bg_rng.random(3)) if o.random_background else self.background
+        out = render(g, view.camera, background=bg, sh_degree=degree, cfg=cfg.raster)
+        self.strategy.step_pre_backward(self.params, self.strategy_state, step, out)
+        loss = photometric_loss(out.rgb, self.target(idx, bg), o.lambda_dssim)
         # (a view where nothing is visible gives a loss that does not depend on the parameters)
         dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
         value = float(loss[0])
         if not math.isfinite(value):
             raise TrainingDiverged(f"the loss became {value} at iteration {step} (view {view.name}); the last good "
                                    f"checkpoint ({self.out / CHECKPOINT}) is kept")
-        n_before = self.g.n
-        info = self.strategy.step_post_backward(step, self.g, self.opt, out, view.camera.width, view.camera.height,
-                                                white_background=self.background == (1.0, 1.0, 1.0))
-        changed = bool(info.get("changed", False)) or self.g.n != n_before
-        if not changed:
+        info = self.strategy.step_post_backward(self.params, self.strategy_state, step, out)
+        if not info.changed:
             # (after a densification step the reference's parameters are new tensors without gradients, so its
             # Adam step skips them: we do the same)
-            self.opt.step()
-        optim_state.sync_gaussians(self.opt, self.g)
+            self.params.step()
         return value
 
     # ------------------------------------------------------------------ evaluation
     def _test_psnr(self) -> float | None:
         if not self.ds.test:
             return None
-        scores, _ = evaluate_views(self.g, self.ds.test, self.background, cfg=self.cfg.raster, with_lpips=False,
+        scores, _ = evaluate_views(self.gaussians, self.ds.test, self.background, cfg=self.cfg.raster, with_lpips=False,
                                    color_space=self.ds.color_space)
         return summarize(scores)["psnr"]
 
@@ -225,7 +232,7 @@ class Trainer:
                 ema = loss if ema is None else 0.4 * loss + 0.6 * ema
                 self.history.iteration.append(step)
                 self.history.loss.append(loss)
-                self.history.gaussians.append(self.g.n)
+                self.history.gaussians.append(self.params.n)
                 self.history.seconds.append(round(self.elapsed, 4))
                 if cfg.eval_every and step % cfg.eval_every == 0 or step == total:
                     last_psnr = self._test_psnr()
@@ -233,12 +240,12 @@ class Trainer:
                         self.history.eval_iteration.append(step)
                         self.history.test_psnr.append(last_psnr)
                 if step in cfg.save_iterations and step != total:
-                    self.g.save_ply(self.out / f"point_cloud_{step}.ply")
+                    self.gaussians.save_ply(self.out / f"point_cloud_{step}.ply")
                 if step % cfg.checkpoint_every == 0 or step == total:
                     self.save_checkpoint()
                 bar.update(1)
                 if step % 10 == 0 or step == total:
-                    post = {"loss": f"{ema:.4f}", "N": f"{self.g.n:,}"}
+                    post = {"loss": f"{ema:.4f}", "N": f"{self.params.n:,}"}
                     if last_psnr is not None:
                         post["PSNR"] = f"{last_psnr:.2f}"
                     bar.set_postfix(post)
@@ -248,23 +255,20 @@ class Trainer:
 
     def finish(self) -> dict:
         """Final outputs: PLY, test renders and comparisons, metrics.json, curves."""
-        self.g.save_ply(self.out / "point_cloud.ply")
+        g = self.gaussians
+        g.save_ply(self.out / "point_cloud.ply")
         views = self.ds.test if self.ds.test else self.ds.train[:1]
-        scores, note = evaluate_views(self.g, views, self.background, cfg=self.cfg.raster, keep_images=True,
+        scores, note = evaluate_views(g, views, self.background, cfg=self.cfg.raster, keep_images=True,
                                       color_space=self.ds.color_space)
         report.write_view_outputs(self.out, scores, self.ds.color_space)
         metrics = {
             "split": "test" if self.ds.test else "train (no test views)",
-            "mean": summarize(scores),
-            "views": {s.name: {"psnr": s.psnr, "ssim": s.ssim, **({"lpips": s.lpips} if s.lpips is not None
-                                                                  else {})} for s in scores},
-            "gaussians": self.g.n,
+            **scores_report(scores, note),
+            "gaussians": g.n,
             "iterations": self.step,
             "training_seconds": round(self.elapsed, 3),
             "iterations_per_second": round(self.step / self.elapsed, 3) if self.elapsed > 0 else None,
         }
-        if note:
-            metrics["lpips_note"] = note
         report.write_json(self.out / "metrics.json", metrics)
         report.write_json(self.out / "history.json", self.history.to_dict())
         report.plot_curves(self.out / "curves.png", self.history.to_dict())
