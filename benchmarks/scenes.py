@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def run_one(scene: str, init: str, iterations: int, out_root: Path, init_points: int | None = None) -> dict:
     from mi_gaussians.config import DensifyConfig, OptimConfig, SceneConfig, TrainConfig
-    from mi_gaussians.data import mitsuba_scene as ms
+    from mi_gaussians.data.scene_dataset import load_scene_dataset
     from mi_gaussians.optim.trainer import Trainer
 
     path = ROOT / "scenes" / f"{scene}.xml"
@@ -31,10 +31,10 @@ def run_one(scene: str, init: str, iterations: int, out_root: Path, init_points:
                       checkpoint_every=iterations, eval_every=max(500, iterations // 6), save_iterations=())
     refs = out_root / scene / "references"
     # render (or reuse) the references first, so that the init timing below is the init alone
-    ms.load_scene_dataset(path, dataclasses.replace(scfg, init="random", init_points=1), cache_root=refs,
+    load_scene_dataset(path, dataclasses.replace(scfg, init="random", init_points=1), cache_root=refs,
                           log=lambda s: print(s, file=sys.stderr))
     t0 = time.perf_counter()
-    ds = ms.load_scene_dataset(path, scfg, cache_root=refs, progress=False, log=lambda s: print(s, file=sys.stderr))
+    ds = load_scene_dataset(path, scfg, cache_root=refs, progress=False, log=lambda s: print(s, file=sys.stderr))
     init_s = time.perf_counter() - t0
     out = out_root / scene / (init if init_points is None else f"{init}_{init_points}")
     tr = Trainer(ds, cfg, out, progress=True)

@@ -45,42 +45,55 @@ def _background(values) -> tuple[float, float, float]:
 
 
 # ------------------------------------------------------------------------------------------------------ info
+def _ply_info(path: Path) -> dict:
+    import numpy as np
+
+    from .conventions import sh_degree_from_coeff_count, sigmoid
+    from .model.ply import read_ply
+
+    p = read_ply(path)
+    n = p["means"].shape[0]
+    info = {"file": str(path), "gaussians": n, "sh_degree": sh_degree_from_coeff_count(p["sh_rest"].shape[1] + 1)}
+    if n:
+        opac = sigmoid(p["opacities"].astype(np.float64))
+        sig = np.exp(p["scales"].astype(np.float64)).max(axis=1)
+        info.update(bbox_min=p["means"].min(0).round(4).tolist(), bbox_max=p["means"].max(0).round(4).tolist(),
+                    opacity_mean=round(float(opac.mean()), 4),
+                    sigma_max_median=float(np.median(sig)))
+    return info
+
+
+def _scene_info(path: Path, defines) -> dict:
+    from .data.scene_file import load_file
+
+    scene = load_file(path, defines)
+    return {"file": str(path), "integrator": scene.integrator().class_name() if scene.integrator() else None,
+            "sensors": [s.id() or s.class_name() for s in scene.sensors()],
+            "shapes": len(scene.shapes()), "bbox": [list(scene.bbox().min), list(scene.bbox().max)]}
+
+
+def _dataset_info(path: Path, resolution: int) -> dict:
+    from .data.dataset import load_dataset
+
+    ds = load_dataset(path, resolution=resolution)
+    cam = ds.train[0].camera
+    return {"dataset": str(path), "layout": ds.layout, "train_views": len(ds.train), "test_views": len(ds.test),
+            "image_size": [cam.width, cam.height], "fx": round(cam.fx, 4), "fy": round(cam.fy, 4),
+            "cx": round(cam.cx, 4), "cy": round(cam.cy, 4), "color_space": ds.color_space,
+            "points": 0 if ds.points_xyz is None else int(ds.points_xyz.shape[0]),
+            "extent": round(ds.extent, 6)}
+
+
 def cmd_info(args) -> int:
     path = Path(args.path)
     if not path.exists():
         raise InputError(f"{path}: not found")
     if path.suffix.lower() == ".ply":
-        import numpy as np
-
-        from .model.ply import read_ply
-
-        p = read_ply(path)
-        n = p["means"].shape[0]
-        deg = {0: 0, 3: 1, 8: 2, 15: 3}[p["sh_rest"].shape[1]]
-        info = {"file": str(path), "gaussians": n, "sh_degree": deg}
-        if n:
-            opac = 1.0 / (1.0 + np.exp(-p["opacities"].astype(np.float64)))
-            sig = np.exp(p["scales"].astype(np.float64)).max(axis=1)
-            info.update(bbox_min=p["means"].min(0).round(4).tolist(), bbox_max=p["means"].max(0).round(4).tolist(),
-                        opacity_mean=round(float(opac.mean()), 4),
-                        sigma_max_median=float(np.median(sig)))
+        info = _ply_info(path)
     elif path.suffix.lower() == ".xml":
-        import mitsuba as mi
-
-        scene = mi.load_file(str(path))
-        info = {"file": str(path), "integrator": scene.integrator().class_name() if scene.integrator() else None,
-                "sensors": [s.id() or s.class_name() for s in scene.sensors()],
-                "shapes": len(scene.shapes()), "bbox": [list(scene.bbox().min), list(scene.bbox().max)]}
+        info = _scene_info(path, args.define)
     else:
-        from .data.dataset import load_dataset
-
-        ds = load_dataset(path, resolution=args.resolution)
-        cam = ds.train[0].camera
-        info = {"dataset": str(path), "layout": ds.layout, "train_views": len(ds.train), "test_views": len(ds.test),
-                "image_size": [cam.width, cam.height], "fx": round(cam.fx, 4), "fy": round(cam.fy, 4),
-                "cx": round(cam.cx, 4), "cy": round(cam.cy, 4), "color_space": ds.color_space,
-                "points": 0 if ds.points_xyz is None else int(ds.points_xyz.shape[0]),
-                "extent": round(ds.extent, 6)}
+        info = _dataset_info(path, args.resolution)
     print(json.dumps(info, indent=2))
     return 0
 
@@ -112,40 +125,28 @@ def _outputs_for(path: Path) -> list[Path]:
     return [path]
 
 
-def cmd_render(args) -> int:
-    src = Path(args.input)
-    if not src.exists():
-        raise InputError(f"{src}: not found")
-    out = Path(args.output)
-    if src.suffix.lower() == ".xml":
-        import mitsuba as mi
-        import numpy as np
+def _render_scene_file(args, src: Path, out: Path) -> int:
+    """A Mitsuba scene .xml rendered by Mitsuba with its own integrator (linear outputs)."""
+    import mitsuba as mi
+    import numpy as np
 
-        from .imwrite import write_image
+    from .data.scene_file import load_file
+    from .imwrite import write_image
 
-        from .data.mitsuba_scene import load_file
+    scene = load_file(src, args.define)
+    if not scene.sensors():
+        raise InputError(f"{src}: the scene has no sensor")
+    if args.sensor >= len(scene.sensors()):
+        raise InputError(f"{src}: sensor index {args.sensor} out of range ({len(scene.sensors())} sensors)")
+    img = np.array(mi.render(scene, sensor=args.sensor, spp=args.spp or 0), dtype=np.float32)
+    for p in _outputs_for(out):
+        write_image(p, img[..., :4] if img.shape[-1] >= 4 else img[..., :3], "linear")
+        print(p)
+    return 0
 
-        scene = load_file(src, args.define)
-        if not scene.sensors():
-            raise InputError(f"{src}: the scene has no sensor")
-        if args.sensor >= len(scene.sensors()):
-            raise InputError(f"{src}: sensor index {args.sensor} out of range ({len(scene.sensors())} sensors)")
-        img = np.array(mi.render(scene, sensor=args.sensor, spp=args.spp or 0), dtype=np.float32)
-        for p in _outputs_for(out):
-            write_image(p, img[..., :4] if img.shape[-1] >= 4 else img[..., :3], "linear")
-            print(p)
-        return 0
-    if src.suffix.lower() != ".ply":
-        raise InputError(f"{src}: expected a 3DGS .ply model or a Mitsuba scene .xml")
-    if (args.camera is None) == (args.dataset is None):
-        raise InputError("give exactly one of --camera CAM.json or --dataset DIR")
-    if args.camera is not None:
-        from .data.camera import Camera
 
-        cam = Camera.from_json(args.camera)
-        _render_gaussians_views(args, [(cam.name or "view", cam)], args.color_space, [_outputs_for(out)])
-        print(out)
-        return 0
+def _render_dataset_views(args, out: Path) -> int:
+    """A .ply rendered from the views of a dataset folder into the folder ``out`` (EXR and PNG per view)."""
     from .data.dataset import load_dataset
 
     ds = load_dataset(args.dataset, resolution=args.resolution, background=_background(args.background))
@@ -158,6 +159,27 @@ def cmd_render(args) -> int:
     paths = [[out / f"{Path(v.name).stem}.exr", out / f"{Path(v.name).stem}.png"] for v in views]
     _render_gaussians_views(args, [(v.name, v.camera) for v in views], ds.color_space, paths)
     print(f"{len(views)} views -> {out}")
+    return 0
+
+
+def cmd_render(args) -> int:
+    src = Path(args.input)
+    if not src.exists():
+        raise InputError(f"{src}: not found")
+    out = Path(args.output)
+    if src.suffix.lower() == ".xml":
+        return _render_scene_file(args, src, out)
+    if src.suffix.lower() != ".ply":
+        raise InputError(f"{src}: expected a 3DGS .ply model or a Mitsuba scene .xml")
+    if (args.camera is None) == (args.dataset is None):
+        raise InputError("give exactly one of --camera CAM.json or --dataset DIR")
+    if args.dataset is not None:
+        return _render_dataset_views(args, out)
+    from .data.camera import Camera
+
+    cam = Camera.from_json(args.camera)
+    _render_gaussians_views(args, [(cam.name or "view", cam)], args.color_space, [_outputs_for(out)])
+    print(out)
     return 0
 
 
@@ -182,21 +204,27 @@ def _scene_config(args):
     return dataclasses.replace(SceneConfig(), linear=args.linear, **kw)
 
 
-def _train_config(args, scene_file: bool = False):
-    import dataclasses
+def _data_resolution_and_scene(args, scene_file: bool, default_resolution: int):
+    """(dataset resolution divisor, SceneConfig) from -r: a film size for a scene .xml, a divisor for a folder."""
+    from .config import SceneConfig
 
-    from .config import DataConfig, DensifyConfig, OptimConfig, SceneConfig, TrainConfig
-
-    d, o, dn = DataConfig(), OptimConfig(), DensifyConfig()
     if scene_file:
         if args.resolution is not None and (len(args.resolution) > 2 or min(args.resolution) < 16):
             raise InputError("for a scene .xml, --resolution is the film size in pixels, W [H] (at least 16), "
                              f"not a divisor: got {' '.join(map(str, args.resolution))}")
-        resolution, scene = 1, _scene_config(args)
-    else:
-        if args.resolution is not None and len(args.resolution) != 1:
-            raise InputError("-r/--resolution takes one divisor for a dataset folder (e.g. -r 4)")
-        resolution, scene = (args.resolution[0] if args.resolution else d.resolution), SceneConfig()
+        return 1, _scene_config(args)
+    if args.resolution is not None and len(args.resolution) != 1:
+        raise InputError("-r/--resolution takes one divisor for a dataset folder (e.g. -r 4)")
+    return (args.resolution[0] if args.resolution else default_resolution), SceneConfig()
+
+
+def _train_config(args, scene_file: bool = False):
+    import dataclasses
+
+    from .config import DataConfig, DensifyConfig, OptimConfig, TrainConfig
+
+    d, o, dn = DataConfig(), OptimConfig(), DensifyConfig()
+    resolution, scene = _data_resolution_and_scene(args, scene_file, d.resolution)
     data = dataclasses.replace(d, resolution=resolution, background=_background(args.background)
                                if args.background is not None else (1.0, 1.0, 1.0) if args.white_background
                                else d.background, test_every=args.test_every, seed=args.seed,
@@ -219,72 +247,40 @@ def _train_config(args, scene_file: bool = False):
                        checkpoint_every=args.checkpoint_every, eval_every=args.eval_every, save_iterations=save)
 
 
-RUN_OUTPUTS = ("checkpoints", "renders", "compare", "config.json", "metrics.json", "eval.json", "history.json",
-               "curves.png", "gaussians.xml", "point_cloud.ply")
+def _optimize_config(args, src: Path, out: Path):
+    """(TrainConfig, the saved record of the run being resumed or None); nothing is written."""
+    from . import run_folder
+    from .config import TrainConfig
 
-
-def _clear_run(out: Path) -> None:
-    """Remove an earlier run's outputs from ``out`` (cached references stay)."""
-    import shutil
-
-    for name in RUN_OUTPUTS:
-        p = out / name
-        if p.is_dir():
-            shutil.rmtree(p)
-        elif p.exists():
-            p.unlink()
-    for p in out.glob("point_cloud_*.ply"):
-        p.unlink()
-
-
-def _saved_cache(saved: dict, out: Path) -> str | None:
-    """The cache folder of a run's references: OUTDIR/references when they are there (the folder may have moved),
-    else the folder the run recorded."""
-    refs = saved.get("references")
-    if not refs:
-        return None
-    key = Path(refs).name
-    return str(out / "references") if (out / "references" / key).is_dir() else str(Path(refs).parent)
-
-
-def _saved_key(saved: dict | None) -> str | None:
-    refs = (saved or {}).get("references")
-    return Path(refs).name if refs else None
+    if args.resume and args.overwrite:
+        raise InputError("give at most one of --resume and --overwrite")
+    if args.resume and args.settings:
+        raise InputError("--set cannot change a run being resumed (its settings are in OUTDIR/config.json)")
+    if args.resume:
+        saved = run_folder.read_saved(out, "nothing to resume (no config.json in the output folder)")
+        return TrainConfig.from_dict(saved["train"]), saved
+    run_folder.check_new_run(out, args.overwrite)
+    cfg = _train_config(args, scene_file=_is_scene_file(src))
+    try:
+        return cfg.with_settings(args.settings or ()), None
+    except ValueError as e:
+        raise InputError(str(e)) from None
 
 
 def cmd_optimize(args) -> int:
-    from .config import TrainConfig
+    from . import run_folder
     from .optim.trainer import Trainer, TrainingDiverged
 
     out = Path(args.output)
     src = Path(args.scene)
     if not src.exists():
         raise InputError(f"{src}: not found")
-    if args.resume and args.overwrite:
-        raise InputError("give at most one of --resume and --overwrite")
-    saved = None
-    if args.resume and args.settings:
-        raise InputError("--set cannot change a run being resumed (its settings are in OUTDIR/config.json)")
-    if args.resume:
-        cfg_path = out / "config.json"
-        if not cfg_path.exists():
-            raise InputError(f"{cfg_path}: nothing to resume (no config.json in the output folder)")
-        saved = json.loads(cfg_path.read_text())
-        cfg = TrainConfig.from_dict(saved["train"])
-    else:
-        if (out / "checkpoints").exists() and any((out / "checkpoints").iterdir()) and not args.overwrite:
-            raise InputError(f"{out}: holds an earlier run (use --resume to continue it, --overwrite to start "
-                             "again, or another folder)")
-        cfg = _train_config(args, scene_file=_is_scene_file(src))
-        try:
-            cfg = cfg.with_settings(args.settings or ())
-        except ValueError as e:
-            raise InputError(str(e)) from None
-    cache = args.cache or (_saved_cache(saved, out) if saved else None)
+    cfg, saved = _optimize_config(args, src, out)
+    cache = args.cache or run_folder.saved_cache(saved, out)
     # everything is checked (and references rendered) before an earlier run is removed
-    ds = _load_input(src, cfg, out, cache=cache, progress=not args.quiet, expect_key=_saved_key(saved))
+    ds = _load_input(src, cfg, out, cache=cache, progress=not args.quiet, expect_key=run_folder.saved_key(saved))
     if args.overwrite:
-        _clear_run(out)
+        run_folder.clear_run(out)
     trainer = Trainer(ds, cfg, out, progress=not args.quiet)
     try:
         metrics = trainer.run(resume=args.resume)
@@ -292,10 +288,10 @@ def cmd_optimize(args) -> int:
         print(f"mi-gs: error: {e}", file=sys.stderr)
         return 3
     if ds.layout == "mitsuba":
-        from .data.mitsuba_scene import write_gaussian_scene
+        from .plugins.scene_xml import write_gaussian_scene
 
         cam = (ds.test or ds.train)[0].camera
-        write_gaussian_scene(out / "gaussians.xml", "point_cloud.ply", cam, ds.color_space, ds.background)
+        write_gaussian_scene(out / run_folder.GAUSSIAN_SCENE, run_folder.MODEL, cam, ds.color_space, ds.background)
     print(json.dumps({"output": str(out), **metrics["mean"], "gaussians": metrics["gaussians"],
                       "training_seconds": metrics["training_seconds"]}, indent=2))
     return 0
@@ -307,10 +303,11 @@ def _load_input(src: Path, cfg, out: Path, cache: str | None = None, progress: b
     OUTDIR/references)."""
     d = cfg.data
     if _is_scene_file(src):
-        from .data.mitsuba_scene import load_scene_dataset
+        from .data.scene_dataset import load_scene_dataset
+        from .run_folder import references_root
 
-        return load_scene_dataset(src, cfg.scene, cache_root=Path(cache) if cache else out / "references",
-                                  background=d.background, test_every=d.test_every, seed=d.seed, progress=progress,
+        return load_scene_dataset(src, cfg.scene, cache_root=references_root(out, cache), background=d.background,
+                                  test_every=d.test_every, seed=d.seed, progress=progress,
                                   log=lambda line: print(line, file=sys.stderr, flush=True), expect_key=expect_key)
     from .data.dataset import load_dataset
 
@@ -319,42 +316,48 @@ def _load_input(src: Path, cfg, out: Path, cache: str | None = None, progress: b
 
 
 # ------------------------------------------------------------------------------------------------------ eval
-def cmd_eval(args) -> int:
-    from .config import TrainConfig
+def _eval_dataset(saved: dict, cfg, out: Path, dataset: str | None):
+    """The dataset a run is evaluated on: ``dataset``, else the one it was trained on (a scene file's references
+    from the run's cache, rendered again only if they are gone; no initial points)."""
+    import dataclasses
+
+    from . import run_folder
     from .data.dataset import load_dataset
-    from .evaluate import evaluate_views, summarize
+
+    src = Path(dataset or saved["dataset"])
+    if _is_scene_file(src):
+        cfg = dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, init="random", init_points=1))
+        return _load_input(src, cfg, out, cache=run_folder.saved_cache(saved, out),
+                           expect_key=run_folder.saved_key(saved))
+    d = cfg.data
+    return load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
+                        random_points=0, masks=d.masks)
+
+
+def cmd_eval(args) -> int:
+    from . import run_folder
+    from .config import TrainConfig
+    from .evaluate import evaluate_views, scores_report
     from .model.gaussians import Gaussians
     from .report import write_json
 
     out = Path(args.run)
-    cfg_path, ply = out / "config.json", out / "point_cloud.ply"
-    for p in (cfg_path, ply):
+    ply = out / run_folder.MODEL
+    for p in (out / run_folder.CONFIG, ply):
         if not p.exists():
             raise InputError(f"{p}: missing (is {out} an mi-gs optimize output folder?)")
-    saved = json.loads(cfg_path.read_text())
+    saved = run_folder.read_saved(out, "missing")
     cfg = TrainConfig.from_dict(saved["train"])
-    d = cfg.data
-    src = Path(args.dataset or saved["dataset"])
-    if _is_scene_file(src):
-        import dataclasses
-
-        # the references cached by the run (rendered again only if they are gone); no initial points needed
-        cfg = dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, init="random", init_points=1))
-        ds = _load_input(src, cfg, out, cache=_saved_cache(saved, out), expect_key=_saved_key(saved))
-    else:
-        ds = load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
-                          random_points=0, masks=d.masks)
+    ds = _eval_dataset(saved, cfg, out, args.dataset)
     views = ds.test if ds.test else ds.train
     g = Gaussians.load_ply(ply)
     scores, note = evaluate_views(g, views, tuple(ds.background), cfg=cfg.raster, color_space=ds.color_space)
-    result = {"split": "test" if ds.test else "train", "mean": summarize(scores),
-              "views": {s.name: {"psnr": s.psnr, "ssim": s.ssim, **({"lpips": s.lpips} if s.lpips is not None
-                                                                  else {})} for s in scores},
-              "gaussians": g.n}
-    if note:
-        result["lpips_note"] = note
-    write_json(out / "eval.json", result)
-    print(json.dumps({"output": str(out / "eval.json"), **result["mean"], "gaussians": g.n,
+    report = scores_report(scores, note)
+    note = report.pop("lpips_note", None)
+    result = {"split": "test" if ds.test else "train", **report, "gaussians": g.n,
+              **({"lpips_note": note} if note else {})}
+    write_json(out / run_folder.EVAL, result)
+    print(json.dumps({"output": str(out / run_folder.EVAL), **result["mean"], "gaussians": g.n,
                       **({"lpips_note": note} if note else {})}, indent=2))
     return 0
 
@@ -373,15 +376,22 @@ def cmd_convert(args) -> int:
 
 
 # ------------------------------------------------------------------------------------------------------ main
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="mi-gs", description="3D Gaussian Splatting as a Mitsuba 3 plugin.")
-    p.add_argument("--variant", default=None, help="Mitsuba variant (default: cuda_ad_rgb if available, else llvm_ad_rgb)")
-    sub = p.add_subparsers(dest="command", required=True)
+def _add_define(parser, help_text: str) -> None:
+    parser.add_argument("-D", "--define", action="append", default=None, metavar="KEY=VALUE", help=help_text)
+
+
+def _add_info(sub) -> None:
+    from .config import DataConfig
 
     s = sub.add_parser("info", help="summarize a 3DGS .ply, a dataset folder or a Mitsuba scene .xml")
     s.add_argument("path")
-    s.add_argument("-r", "--resolution", type=int, default=1, help="dataset resolution divisor")
+    s.add_argument("-r", "--resolution", type=int, default=DataConfig().resolution, help="dataset resolution divisor")
+    _add_define(s, "set a scene parameter (scene .xml only), as mitsuba -D; repeatable")
     s.set_defaults(func=cmd_info)
+
+
+def _add_render(sub) -> None:
+    from .config import DataConfig
 
     s = sub.add_parser("render", help="render a 3DGS .ply (from a camera JSON or a dataset's views) or a scene .xml")
     s.add_argument("input", help="model.ply or scene.xml")
@@ -389,7 +399,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--dataset", help="dataset folder whose views to render")
     s.add_argument("--split", choices=("train", "test", "all"), default="test")
     s.add_argument("-o", "--output", required=True, help="output .exr/.png file, or folder with --dataset")
-    s.add_argument("-r", "--resolution", type=int, default=1)
+    s.add_argument("-r", "--resolution", type=int, default=DataConfig().resolution)
     s.add_argument("--background", type=float, nargs="+", default=None, help="background colour (1 or 3 values)")
     s.add_argument("--sh-degree", type=int, default=None, help="active SH degree (default: the model's)")
     s.add_argument("--color-space", choices=("srgb", "linear"), default="srgb",
@@ -397,74 +407,109 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--alpha", action="store_true", help="write an alpha channel")
     s.add_argument("--spp", type=int, default=None, help="samples per pixel (scene .xml only)")
     s.add_argument("--sensor", type=int, default=0, help="sensor index (scene .xml only)")
-    s.add_argument("-D", "--define", action="append", default=None, metavar="KEY=VALUE",
-                   help="set a scene parameter (scene .xml only), as mitsuba -D; repeatable")
+    _add_define(s, "set a scene parameter (scene .xml only), as mitsuba -D; repeatable")
     s.set_defaults(func=cmd_render)
 
+
+def _add_scene_options(s) -> None:
+    from .config import SceneConfig
+    from .data.scene_init import INIT_METHODS
+    from .data.scene_rig import FALLBACK_FOV, FALLBACK_SPP, FALLBACK_UP, RIGS
+
+    sc = SceneConfig()
+    g = s.add_argument_group("Mitsuba scene (.xml) input")
+    g.add_argument("--rig", choices=RIGS, default=None,
+                   help=f"cameras: the scene's sensors, or generated around its bounding box (default {sc.rig}: the "
+                        "sensors if the scene declares several, else hemisphere)")
+    g.add_argument("--views", type=int, default=None,
+                   help=f"generated training cameras (default {sc.views}; --seed also picks the rig, so another seed "
+                        "renders new references)")
+    g.add_argument("--test-views", type=int, default=None,
+                   help=f"generated held-out cameras (default {sc.test_views})")
+    g.add_argument("--radius", type=float, default=None,
+                   help="rig radius (default: the bounding sphere fills the view)")
+    g.add_argument("--fov", type=float, default=None, help="horizontal field of view in degrees (default: the "
+                                                           f"sensor's, else {FALLBACK_FOV:g})")
+    g.add_argument("--up", type=float, nargs=3, default=None,
+                   help=f"world up (default: the sensor's, else {' '.join(f'{u:g}' for u in FALLBACK_UP)})")
+    g.add_argument("--spp", type=int, default=None, help="reference samples per pixel (default: the sensor's, "
+                                                         f"else {FALLBACK_SPP})")
+    g.add_argument("--linear", action="store_true",
+                   help="train on linear radiance (default: on the sRGB-encoded references)")
+    g.add_argument("--init", choices=INIT_METHODS, default=None,
+                   help=f"initial points (default {sc.init}): sampled on the shapes and coloured by the references, "
+                        "random in the bounding box, or structure from motion")
+    g.add_argument("--init-points", type=int, default=None,
+                   help=f"initial points for shapes/random (default {sc.init_points})")
+    g.add_argument("--cache", default=None, help="folder for the cached references (default OUTDIR/references)")
+    _add_define(g, "set a scene parameter (<default name=\"KEY\">), as mitsuba -D; repeatable")
+
+
+def _add_optimize(sub) -> None:
+    from .config import DataConfig, OptimConfig, TrainConfig
+    from .data.scene_rig import FALLBACK_RESOLUTION
+
+    d, o, t = DataConfig(), OptimConfig(), TrainConfig()
     s = sub.add_parser("optimize", help="fit Gaussians to a COLMAP / Blender / instant-ngp scene folder, or to "
                                         "path-traced references of a Mitsuba scene .xml")
     s.add_argument("scene", help="scene folder, or Mitsuba scene file (.xml)")
     s.add_argument("-o", "--output", required=True, help="output folder")
-    s.add_argument("--iterations", type=int, default=None, help="default 30000 (the paper's)")
+    s.add_argument("--iterations", type=int, default=None, help=f"default {o.iterations} (the paper's)")
     s.add_argument("-r", "--resolution", type=int, nargs="+", default=None,
-                   help="scene folder: divide the image size by this (default 1); scene .xml: the film size of "
-                        "generated cameras, W [H] (default: the scene's sensor's, else 256)")
+                   help=f"scene folder: divide the image size by this (default {d.resolution}); scene .xml: the film "
+                        f"size of generated cameras, W [H] (default: the scene's sensor's, else "
+                        f"{FALLBACK_RESOLUTION[0]})")
     s.add_argument("--white-background", action="store_true", help="composite RGBA images over white")
     s.add_argument("--background", type=float, nargs="+", default=None, help="background colour (1 or 3 values)")
     s.add_argument("--random-background", action="store_true", help="random background colour per iteration")
-    s.add_argument("--sh-degree", type=int, default=None, help="maximum SH degree (default 3)")
-    s.add_argument("--test-every", type=int, default=8, help="hold out every N-th image (COLMAP/ngp; 0: none)")
+    s.add_argument("--sh-degree", type=int, default=None, help=f"maximum SH degree (default {o.sh_degree})")
+    s.add_argument("--test-every", type=int, default=d.test_every,
+                   help="hold out every N-th image (COLMAP/ngp; 0: none)")
     s.add_argument("--random-points", type=int, default=None,
-                   help="initial random points for layouts without SfM points (default 100000)")
-    s.add_argument("--seed", type=int, default=0)
+                   help=f"initial random points for layouts without SfM points (default {d.random_points})")
+    s.add_argument("--seed", type=int, default=t.seed)
     s.add_argument("--set", action="append", default=None, metavar="SECTION.FIELD=VALUE", dest="settings",
                    help="set any field of the training configuration (mi_gaussians/config.py), applied after the "
                         "other options, e.g. --set densify.min_opacity=0.1 --set optim.feature_lr=0.005; repeatable")
-    s.add_argument("--checkpoint-every", type=int, default=1000)
-    s.add_argument("--eval-every", type=int, default=1000, help="test PSNR for the curves every N iterations")
+    s.add_argument("--checkpoint-every", type=int, default=t.checkpoint_every)
+    s.add_argument("--eval-every", type=int, default=t.eval_every, help="test PSNR for the curves every N iterations")
     s.add_argument("--resume", action="store_true", help="continue the run saved in the output folder")
     s.add_argument("--overwrite", action="store_true",
                    help="start a new run in an output folder that holds one (cached references are kept)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
-    g = s.add_argument_group("Mitsuba scene (.xml) input")
-    g.add_argument("--rig", choices=("auto", "sensors", "hemisphere", "sphere"), default=None,
-                   help="cameras: the scene's sensors, or generated around its bounding box (default auto: the "
-                        "sensors if the scene declares several, else hemisphere)")
-    g.add_argument("--views", type=int, default=None, help="generated training cameras (default 64; --seed also "
-                                                           "picks the rig, so another seed renders new references)")
-    g.add_argument("--test-views", type=int, default=None, help="generated held-out cameras (default 8)")
-    g.add_argument("--radius", type=float, default=None,
-                   help="rig radius (default: the bounding sphere fills the view)")
-    g.add_argument("--fov", type=float, default=None, help="horizontal field of view in degrees (default: the "
-                                                           "sensor's, else 40)")
-    g.add_argument("--up", type=float, nargs=3, default=None, help="world up (default: the sensor's, else 0 1 0)")
-    g.add_argument("--spp", type=int, default=None, help="reference samples per pixel (default: the sensor's, "
-                                                         "else 128)")
-    g.add_argument("--linear", action="store_true",
-                   help="train on linear radiance (default: on the sRGB-encoded references)")
-    g.add_argument("--init", choices=("shapes", "random", "sfm"), default=None,
-                   help="initial points: sampled on the shapes and coloured by the references (default), random "
-                        "in the bounding box, or structure from motion")
-    g.add_argument("--init-points", type=int, default=None, help="initial points for shapes/random (default 50000)")
-    g.add_argument("--cache", default=None, help="folder for the cached references (default OUTDIR/references)")
-    g.add_argument("-D", "--define", action="append", default=None, metavar="KEY=VALUE",
-                   help="set a scene parameter (<default name=\"KEY\">), as mitsuba -D; repeatable")
+    _add_scene_options(s)
     s.set_defaults(func=cmd_optimize)
 
+
+def _add_eval(sub) -> None:
     s = sub.add_parser("eval", help="recompute the metrics of a saved run on its test views")
     s.add_argument("run", help="an mi-gs optimize output folder")
     s.add_argument("--dataset", default=None, help="dataset folder (default: the one the run was trained on)")
     s.set_defaults(func=cmd_eval)
 
+
+def _add_convert(sub) -> None:
+    from .config import ConvertConfig
+
+    c = ConvertConfig()
     s = sub.add_parser("convert", help="structure-from-motion with pycolmap: images folder -> COLMAP scene")
     s.add_argument("images", help="folder of input images")
     s.add_argument("-o", "--output", required=True, help="scene folder to create (images/ + sparse/0)")
-    s.add_argument("--camera-model", default="OPENCV")
-    s.add_argument("--resize", action="store_true", help="also write images_2/4/8")
+    s.add_argument("--camera-model", default=c.camera_model)
+    s.add_argument("--resize", action="store_true", default=c.resize, help="also write images_2/4/8")
     s.add_argument("--overwrite", action="store_true")
-    s.add_argument("--threads", type=int, default=-1)
-    s.add_argument("--max-image-size", type=int, default=3200)
+    s.add_argument("--threads", type=int, default=c.num_threads)
+    s.add_argument("--max-image-size", type=int, default=c.max_image_size)
     s.set_defaults(func=cmd_convert)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="mi-gs", description="3D Gaussian Splatting as a Mitsuba 3 plugin.")
+    p.add_argument("--variant", default=None,
+                   help="Mitsuba variant (default: cuda_ad_rgb if available, else llvm_ad_rgb)")
+    sub = p.add_subparsers(dest="command", required=True)
+    for add in (_add_info, _add_render, _add_optimize, _add_eval, _add_convert):
+        add(sub)
     return p
 
 

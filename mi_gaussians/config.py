@@ -86,7 +86,7 @@ class DensifyConfig:
 
 @dataclass(frozen=True)
 class SceneConfig:
-    """``mi-gs optimize scene.xml``: how a Mitsuba scene becomes training views (``mi_gaussians.data.mitsuba_scene``).
+    """``mi-gs optimize scene.xml``: how a Mitsuba scene becomes training views (``mi_gaussians.data.scene_dataset``).
 
     ``None`` means "from the scene's own (first) sensor", falling back to the value in the comment."""
 

@@ -13,6 +13,11 @@ from mi_gaussians.imwrite import SRGB_DECODE_THRESHOLD, SRGB_GAMMA, SRGB_OFFSET,
 from mi_gaussians.raster.projection import GaussianArrays
 from mi_gaussians.raster.rasterize import render_arrays
 
+# The integrator's plugin name and the XML parameters that other code writes (plugins/scene_xml.py): declared once.
+INTEGRATOR = "gaussian_splatting"
+BACKGROUND, SH_DEGREE, DEPTH_AOV, COLOR_SPACE = "background", "sh_degree", "depth_aov", "color_space"
+COLOR_SPACES = ("linear", "srgb")
+
 
 def gaussians_from_ellipsoids(shape, max_degree: int = 3) -> GaussianArrays:
     """Activated Gaussians from a Mitsuba ``ellipsoids`` shape, read through ``mi.traverse`` (AD-attached).
@@ -123,18 +128,18 @@ class GaussianSplattingIntegrator(mi.CppADIntegrator):
 
     def __init__(self, props):
         super().__init__(props)
-        bg = props.get("background", 0.0)
+        bg = props.get(BACKGROUND, 0.0)
         if isinstance(bg, (int, float)):
             self.background = (float(bg),) * 3
         else:
             c = mi.ScalarColor3f(bg)
             self.background = (float(c[0]), float(c[1]), float(c[2]))
-        self.sh_degree = int(props.get("sh_degree", -1))
+        self.sh_degree = int(props.get(SH_DEGREE, -1))
         if self.sh_degree < -1 or self.sh_degree > 3:
             raise ValueError(f"gaussian_splatting: sh_degree must be -1 or in 0..3, got {self.sh_degree}")
-        self.depth_aov = bool(props.get("depth_aov", False))
-        self.color_space = str(props.get("color_space", "linear"))
-        if self.color_space not in ("linear", "srgb"):
+        self.depth_aov = bool(props.get(DEPTH_AOV, False))
+        self.color_space = str(props.get(COLOR_SPACE, "linear"))
+        if self.color_space not in COLOR_SPACES:
             raise ValueError(f"gaussian_splatting: color_space must be 'linear' or 'srgb', got {self.color_space!r}")
         self.cfg = RasterConfig()
 
@@ -206,5 +211,5 @@ class GaussianSplattingIntegrator(mi.CppADIntegrator):
 
 
 def register() -> list[str]:
-    mi.register_integrator("gaussian_splatting", lambda props: GaussianSplattingIntegrator(props))
-    return ["gaussian_splatting"]
+    mi.register_integrator(INTEGRATOR, lambda props: GaussianSplattingIntegrator(props))
+    return [INTEGRATOR]

@@ -158,3 +158,14 @@ def test_to_mitsuba_refuses_non_square_pixels():
     cam = make_camera(fx=100.0, fy=120.0)
     with pytest.raises(ValueError, match="square pixels"):
         cam.to_mitsuba()
+
+
+def test_focal_and_field_of_view_are_inverse():
+    from mi_gaussians.data.camera import camera_center, focal_from_fov, fov_from_focal
+
+    f = focal_from_fov(640, math.radians(60.0))
+    assert abs(f - 320.0 / math.tan(math.radians(30.0))) < 1e-9
+    assert abs(fov_from_focal(640, f) - math.radians(60.0)) < 1e-12
+    w2c = np.eye(4)
+    w2c[:3, 3] = [1.0, 2.0, 3.0]
+    assert np.allclose(camera_center(w2c), [-1.0, -2.0, -3.0])

@@ -121,3 +121,52 @@ def test_missing_inputs_and_bad_scene(tmp_path):
     assert_one_line_error(run("render", SCENES / "tiny_gaussians.ply", "--camera",
                               SCENES / "tiny_gaussians_camera.json", "-o", tmp_path / "o.jpg"), "o.jpg")
     assert not (tmp_path / "o.png").exists() and not (tmp_path / "o.exr").exists()
+
+
+def test_info_on_scene_xml_takes_parameters(tmp_path):
+    res = run("info", SCENES / "objects.xml", "-D", "spp=4")
+    assert res.returncode == 0, res.stderr
+    info = json.loads(res.stdout)
+    assert info["shapes"] > 0 and info["sensors"]
+    assert_one_line_error(run("info", SCENES / "objects.xml", "-D", "nokey"), "KEY=VALUE")
+    bad = tmp_path / "bad.xml"
+    bad.write_text("<scene version='3.0.0'><shape type='sphere'></scene>")
+    assert_one_line_error(run("info", bad), str(bad))
+
+
+def test_parser_defaults_come_from_the_config():
+    from mi_gaussians.cli import build_parser
+    from mi_gaussians.config import ConvertConfig, DataConfig, TrainConfig
+
+    p = build_parser()
+    a, t = p.parse_args(["optimize", "scene", "-o", "out"]), TrainConfig()
+    assert (a.test_every, a.seed, a.checkpoint_every, a.eval_every) == (t.data.test_every, t.seed,
+                                                                         t.checkpoint_every, t.eval_every)
+    assert p.parse_args(["info", "x"]).resolution == DataConfig().resolution
+    c, cc = p.parse_args(["convert", "images", "-o", "out"]), ConvertConfig()
+    assert (c.camera_model, c.threads, c.max_image_size, c.resize) == (cc.camera_model, cc.num_threads,
+                                                                        cc.max_image_size, cc.resize)
+
+
+def test_run_folder(tmp_path):
+    from mi_gaussians import run_folder as rf
+
+    out = tmp_path / "run"
+    rf.check_new_run(out, overwrite=False)                     # nothing there yet
+    for name in ("checkpoints/ckpt.npz", "point_cloud.ply", "point_cloud_7000.ply", "config.json",
+                 "references/abc/train/x.exr"):
+        (out / name).parent.mkdir(parents=True, exist_ok=True)
+        (out / name).write_text("x")
+    with pytest.raises(ValueError, match="holds an earlier run"):
+        rf.check_new_run(out, overwrite=False)
+    rf.check_new_run(out, overwrite=True)
+    rf.clear_run(out)
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()) == \
+        ["references/abc/train/x.exr"]
+    saved = {"references": "/moved/away/abc"}
+    assert rf.saved_key(saved) == "abc" and rf.saved_key(None) is None
+    assert rf.saved_cache(saved, out) == str(out / "references")           # found where the run is now
+    assert rf.saved_cache({"references": "/elsewhere/def"}, out) == "/elsewhere"
+    assert rf.references_root(out, None) == out / "references" and rf.references_root(out, "c") == Path("c")
+    with pytest.raises(ValueError, match="nothing to resume"):
+        rf.read_saved(tmp_path / "empty", "nothing to resume")

@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from mi_gaussians.data.camera import Camera
 from mi_gaussians.data.dataset import detect_layout, load_dataset
 from mi_gaussians.data.images import Undistorter, read_image, resize_area
 
@@ -120,10 +119,11 @@ def test_tiny_colmap_exact(tmp_path):
         np.testing.assert_allclose(v.camera.project(xyz)[0], uv, atol=1e-9)
     assert ds.points_xyz.shape == (6, 3) and ds.points_xyz.dtype == np.float32
     assert ds.points_rgb.dtype == np.float32 and ds.points_rgb.max() <= 1.0
-    # Camera.from_colmap agrees with the loader
+    # the loader's pose is pycolmap's cam_from_world
     image = rec.find_image_with_name("b.png")
-    cam = Camera.from_colmap(rec.cameras[image.camera_id], image)
-    np.testing.assert_allclose(cam.world_to_camera, ds.train[1].camera.world_to_camera)
+    w2c = np.eye(4)
+    w2c[:3, :4] = np.asarray(image.cam_from_world().matrix(), dtype=np.float64)
+    np.testing.assert_allclose(w2c, ds.train[1].camera.world_to_camera)
 
 
 # ------------------------------------------------------------------------------------------------ Blender / splits

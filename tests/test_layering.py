@@ -53,8 +53,6 @@ LAYERS: dict[str, float] = {
     "mi_gaussians": 6,
 }
 
-#: Upward imports that exist today in modules owned elsewhere, allowed until they are removed: (importer, target).
-KNOWN_UPWARD: set[tuple[str, str]] = set()
 
 _SOURCE_DIRS = ((ROOT / "mi_gaussians", PACKAGE), (ROOT / "plugins", f"{PACKAGE}.plugins"))
 
@@ -116,7 +114,7 @@ def upward_imports(modules: dict[str, Path]) -> tuple[list[str], int]:
         for line, target in imports_of(path.read_text(), module, path.name == "__init__.py", known):
             count += 1
             tl = layer_of(target)
-            if tl is not None and tl > own and (module, target) not in KNOWN_UPWARD:
+            if tl is not None and tl > own:
                 bad.append(f"{path.relative_to(ROOT)}:{line}: {module} (layer {own}) -> {target} (layer {tl})")
     return bad, count
 
@@ -138,14 +136,6 @@ def test_imports_point_down():
         assert m in modules
     assert not bad, "imports pointing to a higher layer:\n" + "\n".join(bad)
 
-
-def test_known_upward_imports_still_exist():
-    """Every allowed exception still exists (remove it from KNOWN_UPWARD once the import is gone)."""
-    modules = package_modules()
-    known = set(modules)
-    found = {(m, t) for m, p in modules.items()
-             for _, t in imports_of(p.read_text(), m, p.name == "__init__.py", known)}
-    assert not KNOWN_UPWARD - found, sorted(KNOWN_UPWARD - found)
 
 
 def test_package_init_only_imports_and_registers():

@@ -13,10 +13,14 @@ import pytest
 
 import mi_gaussians as mig
 from mi_gaussians.config import SceneConfig
-from mi_gaussians.data import mitsuba_scene as ms
-from mi_gaussians.data import scene_init
+from mi_gaussians.data import scene_init, scene_references
+from mi_gaussians.data.scene_dataset import load_scene_dataset
+from mi_gaussians.data.scene_file import load_scene, referenced_files, scene_bbox
+from mi_gaussians.data.scene_references import cache_key
+from mi_gaussians.data.scene_rig import look_at_camera, scene_views
 from mi_gaussians.data.images import read_image
 from mi_gaussians.imwrite import linear_to_srgb, srgb_to_linear
+from mi_gaussians.plugins.scene_xml import write_gaussian_scene
 
 from test_cli import assert_one_line_error, run
 
@@ -83,7 +87,7 @@ def test_bad_scene_files_give_one_line_errors(tmp_path, kind):
     p = tmp_path / f"{kind}.xml"
     p.write_text(text)
     with pytest.raises(ValueError) as e:
-        ms.load_scene(p)
+        load_scene(p)
     msg = str(e.value)
     assert "\n" not in msg and msg.startswith(str(p)) and needle in msg, msg
     assert not msg.split(": ", 1)[1].startswith("["), msg      # Mitsuba's "[parser.cpp:...]" prefix removed
@@ -112,8 +116,8 @@ def test_referenced_files_resolve_like_mitsuba(tmp_path):
     main.write_text('<scene version="3.0.0"><default name="m" value="tex.png"/><include filename="sub/part.xml"/>'
                     '<texture type="bitmap" id="t"><string name="filename" value="$m"/></texture>'
                     '<string name="filename" value="$unknown"/></scene>')
-    assert sorted(p.name for p in ms.referenced_files(main)) == ["local.ply", "mesh.ply", "part.xml", "tex.png"]
-    assert "other.ply" in [p.name for p in ms.referenced_files(main, ["m=other.ply"])]
+    assert sorted(p.name for p in referenced_files(main)) == ["local.ply", "mesh.ply", "part.xml", "tex.png"]
+    assert "other.ply" in [p.name for p in referenced_files(main, ["m=other.ply"])]
 
 
 def test_cache_key_follows_referenced_file_contents(scene_file, tmp_path):
@@ -125,11 +129,11 @@ def test_cache_key_follows_referenced_file_contents(scene_file, tmp_path):
         '<rgb name="reflectance" value="0.5"/>',
         '<texture type="bitmap" name="reflectance"><string name="filename" value="t.png"/></texture>')
     scene_file.write_text(text)
-    scene = ms.load_scene(scene_file)
-    v = ms.scene_views(scene, scene_file, SceneConfig(views=2, test_views=1))
-    k1 = ms.cache_key(scene_file, v)
+    scene = load_scene(scene_file)
+    v = scene_views(scene, scene_file, SceneConfig(views=2, test_views=1))
+    k1 = cache_key(scene_file, v)
     Image.new("RGB", (4, 4), (10, 200, 10)).save(tex)
-    assert ms.cache_key(scene_file, v) != k1
+    assert cache_key(scene_file, v) != k1
 
 
 # ------------------------------------------------------------------------------------------------ camera rigs
@@ -141,11 +145,11 @@ def _elevation(cams, center, up):
 def test_hemisphere_rig_geometry(scene_file):
     import mitsuba as mi
 
-    scene = ms.load_scene(scene_file)
+    scene = load_scene(scene_file)
     cfg = SceneConfig(views=40, test_views=6, radius=3.0)
-    v = ms.scene_views(scene, scene_file, cfg, seed=3)
+    v = scene_views(scene, scene_file, cfg, seed=3)
     assert (len(v.train), len(v.test), v.source, v.spp) == (40, 6, "hemisphere", 8)
-    lo, hi = ms.scene_bbox(scene)
+    lo, hi = scene_bbox(scene)
     center = 0.5 * (lo + hi)
     up = np.array([0.0, 1.0, 0.0])       # the sensor's up
     for c in v.train + v.test:
@@ -158,8 +162,8 @@ def test_hemisphere_rig_geometry(scene_file):
     # evenly spread: elevations fill the band, azimuths cover the circle
     assert el.max() - el.min() > 50.0
     # seeded: same seed same cameras, other seed other cameras; test poses differ from training poses
-    again = ms.scene_views(scene, scene_file, cfg, seed=3)
-    other = ms.scene_views(scene, scene_file, cfg, seed=4)
+    again = scene_views(scene, scene_file, cfg, seed=3)
+    other = scene_views(scene, scene_file, cfg, seed=4)
     assert all(np.array_equal(a.world_to_camera, b.world_to_camera) for a, b in zip(v.train, again.train))
     assert not np.allclose(v.train[0].world_to_camera, other.train[0].world_to_camera)
     dmin = min(np.linalg.norm(t.center - c.center) for t in v.test for c in v.train)
@@ -168,11 +172,11 @@ def test_hemisphere_rig_geometry(scene_file):
 
 
 def test_sphere_rig_and_overrides(scene_file):
-    scene = ms.load_scene(scene_file)
+    scene = load_scene(scene_file)
     cfg = SceneConfig(rig="sphere", views=30, test_views=0, resolution=(48,), fov=60.0, up=(0.0, 0.0, 1.0),
                       spp=4)
-    v = ms.scene_views(scene, scene_file, cfg)
-    lo, hi = ms.scene_bbox(scene)
+    v = scene_views(scene, scene_file, cfg)
+    lo, hi = scene_bbox(scene)
     center = 0.5 * (lo + hi)
     el = _elevation(v.train, center, np.array([0.0, 0.0, 1.0]))
     assert el.min() < -45 and el.max() > 45 and v.test == [] and v.spp == 4
@@ -185,13 +189,13 @@ def test_sphere_rig_and_overrides(scene_file):
 
 def test_rig_takes_the_sensors_aspect_and_rejects_bad_options(tmp_path):
     p = write_scene(tmp_path / "wide.xml", w=40, h=20)
-    scene = ms.load_scene(p)
-    v = ms.scene_views(scene, p, SceneConfig(views=2, test_views=1, resolution=(80,)))
+    scene = load_scene(p)
+    v = scene_views(scene, p, SceneConfig(views=2, test_views=1, resolution=(80,)))
     assert (v.train[0].width, v.train[0].height) == (80, 40)
     for bad in (dict(rig="ring"), dict(views=0), dict(fov=190.0), dict(radius=-1.0), dict(up=(0.0, 0.0, 0.0)),
                 dict(rig="sensors")):
         with pytest.raises(ValueError):
-            ms.scene_views(scene, p, dataclasses.replace(SceneConfig(), **bad))
+            scene_views(scene, p, dataclasses.replace(SceneConfig(), **bad))
 
 
 def test_declared_sensors_are_the_views(tmp_path):
@@ -200,8 +204,8 @@ def test_declared_sensors_are_the_views(tmp_path):
     origins = [f"{2.5 * math.cos(a):.4f}, 1.2, {2.5 * math.sin(a):.4f}" for a in np.linspace(0, 6, 10)]
     sensors = [SENSOR.format(id=f"s{i}", fov=40, origin=o, spp=4, w=24, h=16) for i, o in enumerate(origins)]
     p = write_scene(tmp_path / "multi.xml", sensors=sensors)
-    scene = ms.load_scene(p)
-    v = ms.scene_views(scene, p, SceneConfig())
+    scene = load_scene(p)
+    v = scene_views(scene, p, SceneConfig())
     assert v.source == "sensors" and len(v.train) == 8 and len(v.test) == 2
     assert [c.name for c in v.test] == ["sensor_000", "sensor_008"]
     want = mig.Camera.from_mitsuba(scene.sensors()[3])
@@ -211,7 +215,7 @@ def test_declared_sensors_are_the_views(tmp_path):
 
 def test_rig_cameras_agree_with_mitsuba_pixels(bright_sphere):
     """A rig camera's projection of a point is where Mitsuba renders it, through Camera.to_mitsuba."""
-    cam = ms.look_at_camera([2.0, 1.5, -1.0], [0.0, 0.2, 0.0], [0.0, 1.0, 0.0], 64, 48, 50.0, "c")
+    cam = look_at_camera([2.0, 1.5, -1.0], [0.0, 0.2, 0.0], [0.0, 1.0, 0.0], 64, 48, 50.0, "c")
     p = np.array([0.25, 0.35, 0.1])
     img = bright_sphere.render(cam, p, 0.03)
     uv, _ = cam.project(p[None])
@@ -222,7 +226,7 @@ def test_rig_cameras_agree_with_mitsuba_pixels(bright_sphere):
 def test_references_are_cached_and_keyed(tmp_path, monkeypatch):
     p = write_scene(tmp_path / "scene.xml", w=16, h=16, spp=4)
     cfg = SceneConfig(views=3, test_views=1, init="random", init_points=100)
-    ds = ms.load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", progress=False)
+    ds = load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", progress=False)
     files = sorted((tmp_path / "refs").glob("*/*/*.exr"))
     assert len(files) == 4 and ds.references.parent == tmp_path / "refs"
     img = read_image(files[0])
@@ -231,17 +235,17 @@ def test_references_are_cached_and_keyed(tmp_path, monkeypatch):
     assert len(rig["train"]) == 3 and rig["spp"] == 4
 
     calls = []
-    real = ms.render_reference
-    monkeypatch.setattr(ms, "render_reference", lambda *a, **k: calls.append(1) or real(*a, **k))
-    ms.load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", progress=False)
+    real = scene_references.render_reference
+    monkeypatch.setattr(scene_references, "render_reference", lambda *a, **k: calls.append(1) or real(*a, **k))
+    load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", progress=False)
     assert calls == []                                  # a re-run renders nothing
     files[0].unlink()
-    ms.load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", progress=False)
+    load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", progress=False)
     assert len(calls) == 1                              # only what is missing
-    ms.load_scene_dataset(p, dataclasses.replace(cfg, spp=2), cache_root=tmp_path / "refs", progress=False)
+    load_scene_dataset(p, dataclasses.replace(cfg, spp=2), cache_root=tmp_path / "refs", progress=False)
     assert len(calls) == 5                              # another sample count: another key
     write_scene(p, w=16, h=16, spp=4, sky="0.2, 0.2, 0.2")
-    ms.load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", progress=False)
+    load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", progress=False)
     assert len(calls) == 9 and len(list((tmp_path / "refs").iterdir())) == 3   # an edited scene: another key
 
 
@@ -250,7 +254,8 @@ def test_background_is_in_the_training_colour_space(tmp_path):
     p = write_scene(tmp_path / "scene.xml", w=16, h=16, spp=4)
     for linear in (False, True):
         cfg = SceneConfig(views=2, test_views=1, init="random", init_points=10, radius=6.0, linear=linear)
-        ds = ms.load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", background=(0.5, 0.25, 0.0), progress=False)
+        ds = load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", background=(0.5, 0.25, 0.0),
+                                progress=False)
         v = ds.train[0]
         empty = v.load_alpha() == 0
         assert empty.sum() > 10
@@ -260,8 +265,8 @@ def test_background_is_in_the_training_colour_space(tmp_path):
 def test_training_targets_are_srgb_encoded_hdr(tmp_path):
     p = write_scene(tmp_path / "scene.xml", w=16, h=16, spp=4, sky="3, 3, 3")     # bright: values above 1
     base = SceneConfig(views=2, test_views=1, init="random", init_points=10)
-    enc = ms.load_scene_dataset(p, base, cache_root=tmp_path / "refs", progress=False)
-    lin = ms.load_scene_dataset(p, dataclasses.replace(base, linear=True), cache_root=tmp_path / "refs",
+    enc = load_scene_dataset(p, base, cache_root=tmp_path / "refs", progress=False)
+    lin = load_scene_dataset(p, dataclasses.replace(base, linear=True), cache_root=tmp_path / "refs",
                                 progress=False)
     assert (enc.color_space, lin.color_space) == ("srgb", "linear")
     raw = read_image(enc.references / "train" / "train_000.exr")[..., :3]
@@ -273,7 +278,7 @@ def test_training_targets_are_srgb_encoded_hdr(tmp_path):
 
 # ------------------------------------------------------------------------------------------------ initial points
 def test_shape_samples_lie_on_the_shapes(scene_file):
-    scene = ms.load_scene(scene_file)
+    scene = load_scene(scene_file)
     xyz = scene_init.sample_surface_points(scene, 4000, seed=1)
     on_ball = np.abs(np.linalg.norm(xyz - [0, 0.35, 0], axis=1) - 0.35) < 1e-4
     on_ground = (np.abs(xyz[:, 1]) < 1e-5) & (np.abs(xyz[:, [0, 2]]) <= 1 + 1e-5).all(axis=1)
@@ -285,8 +290,8 @@ def test_shape_samples_lie_on_the_shapes(scene_file):
 
 
 def test_visibility_and_colours_from_views(scene_file):
-    scene = ms.load_scene(scene_file)
-    cam = ms.look_at_camera([0.0, 0.35, 3.0], [0.0, 0.35, 0.0], [0, 1, 0], 32, 32, 40.0, "c")
+    scene = load_scene(scene_file)
+    cam = look_at_camera([0.0, 0.35, 3.0], [0.0, 0.35, 0.0], [0, 1, 0], 32, 32, 40.0, "c")
     front, back = np.array([[0.0, 0.35, 0.35]]), np.array([[0.0, 0.35, -0.35]])
     assert scene_init.visible_from(scene, cam, front)[0][0]
     assert not scene_init.visible_from(scene, cam, back)[0][0]            # behind the ball
@@ -312,7 +317,7 @@ def test_umeyama_recovers_a_similarity():
 
 def test_dataset_from_shapes_init(scene_file, tmp_path):
     cfg = SceneConfig(views=6, test_views=1, init_points=3000, resolution=(24,))
-    ds = ms.load_scene_dataset(scene_file, cfg, cache_root=tmp_path / "refs", progress=False)
+    ds = load_scene_dataset(scene_file, cfg, cache_root=tmp_path / "refs", progress=False)
     assert ds.layout == "mitsuba" and 0 < len(ds.points_xyz) <= 3000
     assert ds.points_rgb.shape == ds.points_xyz.shape and np.all(ds.points_rgb >= 0)
     assert ds.extent > 0 and len(ds.train) == 6 and len(ds.test) == 1
@@ -327,7 +332,7 @@ def test_written_gaussian_scene_renders_the_model(tmp_path):
     (tmp_path / "m.ply").write_bytes((ROOT / "scenes" / "tiny_gaussians.ply").read_bytes())
     want = np.array(mig.render(g, cam, background=(0.2, 0.2, 0.2)).rgb)
     for cs in ("linear", "srgb"):
-        ms.write_gaussian_scene(tmp_path / f"g_{cs}.xml", "m.ply", cam, cs, background=(0.2, 0.2, 0.2))
+        write_gaussian_scene(tmp_path / f"g_{cs}.xml", "m.ply", cam, cs, background=(0.2, 0.2, 0.2))
         img = np.array(mi.render(mi.load_file(str(tmp_path / f"g_{cs}.xml"))))
         assert img.shape == (72, 96, 4)
         expect = want if cs == "linear" else srgb_to_linear(want)
@@ -356,7 +361,7 @@ def test_optimize_scene_xml_end_to_end(tmp_path):
     from mi_gaussians.evaluate import evaluate_views, summarize
 
     cfg = TrainConfig.from_dict(json.loads((out / "config.json").read_text())["train"])
-    ds = ms.load_scene_dataset(p, cfg.scene, cache_root=out / "references", progress=False)
+    ds = load_scene_dataset(p, cfg.scene, cache_root=out / "references", progress=False)
     g0 = mig.Gaussians.from_points(ds.points_xyz, ds.points_rgb, sh_degree=3)
     first = summarize(evaluate_views(g0, ds.test, (0, 0, 0), with_lpips=False)[0])["psnr"]
     assert last > 25.0 and last > first + 5.0, (first, last)     # measured: 20.6 -> 27.8 dB

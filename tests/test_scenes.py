@@ -11,7 +11,9 @@ from pathlib import Path
 import pytest
 
 from mi_gaussians.config import SceneConfig
-from mi_gaussians.data import mitsuba_scene as ms
+from mi_gaussians.data.scene_file import load_scene, parse_defines, scene_bbox
+from mi_gaussians.data.scene_references import cache_key
+from mi_gaussians.data.scene_rig import scene_views
 
 from test_cli import run
 
@@ -33,19 +35,19 @@ def _bsdf_types(scene) -> set[str]:
 
 @pytest.mark.parametrize("name", ["objects", "room"])
 def test_example_scene_materials(name):
-    scene = ms.load_scene(SCENES / f"{name}.xml")
+    scene = load_scene(SCENES / f"{name}.xml")
     types = _bsdf_types(scene)
     assert {"RoughConductor", "textured diffuse"} <= types, types
     assert types & {"SmoothPlastic", "RoughPlastic"}, types
 
 
 def test_objects_is_object_centric_and_room_declares_its_cameras():
-    objects, room = ms.load_scene(SCENES / "objects.xml"), ms.load_scene(SCENES / "room.xml")
-    v = ms.scene_views(objects, SCENES / "objects.xml", SceneConfig())
+    objects, room = load_scene(SCENES / "objects.xml"), load_scene(SCENES / "room.xml")
+    v = scene_views(objects, SCENES / "objects.xml", SceneConfig())
     assert v.source == "hemisphere" and (len(v.train), len(v.test)) == (64, 8)
-    v = ms.scene_views(room, SCENES / "room.xml", SceneConfig())
+    v = scene_views(room, SCENES / "room.xml", SceneConfig())
     assert v.source == "sensors" and (len(v.train), len(v.test)) == (28, 4)
-    lo, hi = ms.scene_bbox(room)
+    lo, hi = scene_bbox(room)
     for c in v.train + v.test:            # every camera is inside the room
         assert (c.center > lo).all() and (c.center < hi).all()
 
@@ -85,10 +87,10 @@ def test_scene_parameters_reach_the_rig_and_the_cache_key():
     import dataclasses
 
     cfg = dataclasses.replace(SceneConfig(), defines=("res=64", "spp=16"))
-    scene = ms.load_scene(SCENES / "objects.xml", cfg.defines)
-    v = ms.scene_views(scene, SCENES / "objects.xml", cfg)
+    scene = load_scene(SCENES / "objects.xml", cfg.defines)
+    v = scene_views(scene, SCENES / "objects.xml", cfg)
     assert (v.train[0].width, v.train[0].height, v.spp) == (64, 64, 16)
-    k1 = ms.cache_key(SCENES / "objects.xml", v, cfg.defines)
-    assert k1 != ms.cache_key(SCENES / "objects.xml", v, ("res=64", "spp=16", "extra=1"))
+    k1 = cache_key(SCENES / "objects.xml", v, cfg.defines)
+    assert k1 != cache_key(SCENES / "objects.xml", v, ("res=64", "spp=16", "extra=1"))
     with pytest.raises(ValueError, match="KEY=VALUE"):
-        ms.parse_defines(["=3"])
+        parse_defines(["=3"])

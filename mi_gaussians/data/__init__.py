@@ -1,1 +1,2 @@
-"""Cameras, datasets and initial point clouds (numpy; no Dr.Jit state)."""
+"""Training data: cameras, dataset folders (COLMAP / Blender / instant-ngp, NumPy), structure from motion, and Mitsuba
+scene files as datasets (loading the scene, its camera rig, path-traced references cached as EXR, initial points)."""

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .camera import focal_from_fov
 from .images import image_size, resolve_image_file
 
 
@@ -112,10 +113,10 @@ def _intrinsics(meta: dict, frame: dict, size: tuple[int, int] | None, where: st
             raise ValueError(f"{where}: no focal length (need 'fl_x' or 'camera_angle_x')")
         if not 0.0 < ax < math.pi:
             raise ValueError(f"{where}: camera_angle_x={ax} is not in (0, pi)")
-        fx = 0.5 * w / math.tan(0.5 * ax)
+        fx = focal_from_fov(w, ax)
     if fy is None:
         ay = get("camera_angle_y")
-        fy = 0.5 * h / math.tan(0.5 * ay) if ay is not None and 0.0 < ay < math.pi else fx
+        fy = focal_from_fov(h, ay) if ay is not None and 0.0 < ay < math.pi else fx
     if fx <= 0 or fy <= 0:
         raise ValueError(f"{where}: focal lengths must be positive, got fl_x={fx}, fl_y={fy}")
     cx, cy = get("cx"), get("cy")

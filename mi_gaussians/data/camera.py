@@ -28,6 +28,22 @@ GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 MI_TO_CV = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 
+def focal_from_fov(size: float, fov: float) -> float:
+    """Focal length in pixels of an image ``size`` pixels across that spans the angle ``fov`` (radians)."""
+    return size / (2.0 * math.tan(fov / 2.0))
+
+
+def fov_from_focal(size: float, focal: float) -> float:
+    """The angle (radians) that ``size`` pixels span at the focal length ``focal`` (pixels)."""
+    return 2.0 * math.atan(size / (2.0 * focal))
+
+
+def camera_center(world_to_camera: np.ndarray) -> np.ndarray:
+    """The centre in world space, (3,), of a camera with this (4, 4) world-to-camera matrix."""
+    R, t = world_to_camera[:3, :3], world_to_camera[:3, 3]
+    return -R.T @ t
+
+
 def _as_matrix(m, what: str) -> np.ndarray:
     a = np.asarray(m, dtype=np.float64)
     if a.shape == (3, 4):
@@ -74,16 +90,15 @@ class Camera:
     @property
     def center(self) -> np.ndarray:
         """Camera centre in world space, (3,)."""
-        R, t = self.world_to_camera[:3, :3], self.world_to_camera[:3, 3]
-        return -R.T @ t
+        return camera_center(self.world_to_camera)
 
     @property
     def fov_x(self) -> float:
-        return 2.0 * math.atan(self.width / (2.0 * self.fx))
+        return fov_from_focal(self.width, self.fx)
 
     @property
     def fov_y(self) -> float:
-        return 2.0 * math.atan(self.height / (2.0 * self.fy))
+        return fov_from_focal(self.height, self.fy)
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Project world points (N, 3) -> (pixel coordinates (N, 2), camera-space depth z (N,))."""
@@ -146,23 +161,6 @@ class Camera:
         c2w_cv = _as_matrix(c2w_gl, f"camera {name!r}") @ GL_TO_CV
         return cls(width, height, fx, fy, cx, cy, np.linalg.inv(c2w_cv), name)
 
-    @classmethod
-    def from_colmap(cls, camera, image, name: str | None = None) -> "Camera":
-        """From a pycolmap ``Camera`` (PINHOLE or SIMPLE_PINHOLE) and ``Image`` (its world-to-camera pose)."""
-        model = camera.model.name if hasattr(camera.model, "name") else str(camera.model)
-        p = np.asarray(camera.params, dtype=np.float64)
-        if model == "PINHOLE":
-            fx, fy, cx, cy = p
-        elif model == "SIMPLE_PINHOLE":
-            fx, cx, cy = p
-            fy = fx
-        else:
-            raise ValueError(f"unsupported COLMAP camera model {model} (only PINHOLE and SIMPLE_PINHOLE; "
-                             "undistort the images first)")
-        w2c = np.eye(4)
-        w2c[:3, :4] = np.asarray(image.cam_from_world().matrix(), dtype=np.float64)
-        return cls(camera.width, camera.height, fx, fy, cx, cy, w2c, image.name if name is None else name)
-
     def to_mitsuba(self, near_clip: float = 0.01, far_clip: float = 1e4, rel_tol: float = 1e-3) -> dict:
         """A ``perspective`` sensor dictionary for ``mi.load_dict`` with the same pixel geometry.
 
@@ -195,7 +193,7 @@ class Camera:
         size = sensor.film().size()
         width, height = int(size[0]), int(size[1])
         fov_x = math.radians(float(params["x_fov"][0] if hasattr(params["x_fov"], "__len__") else params["x_fov"]))
-        fx = width / (2.0 * math.tan(fov_x / 2.0))
+        fx = focal_from_fov(width, fov_x)
         off_x = float(params["principal_point_offset_x"][0]) if "principal_point_offset_x" in params else 0.0
         off_y = float(params["principal_point_offset_y"][0]) if "principal_point_offset_y" in params else 0.0
         to_world = np.array(mi.ScalarTransform4f(params["to_world"]).matrix, dtype=np.float64) \

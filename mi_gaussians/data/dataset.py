@@ -40,13 +40,12 @@ from ..config import DataConfig
 from . import blender as _blender
 from . import colmap as _colmap
 from . import pointcloud as _pc
-from .camera import Camera
+from .camera import GL_TO_CV, Camera
 from .images import IMAGE_EXTENSIONS, ImageLoader, Undistorter, color_space_of, image_size
 
 log = logging.getLogger(__name__)
 
 _DEFAULTS = DataConfig()
-LAYOUTS = ("colmap", "blender", "ngp")
 
 
 @dataclass(frozen=True)
@@ -75,7 +74,7 @@ class Dataset:
     """A loaded scene: train/test views, initial points, background, and the colour encoding of the images."""
 
     root: Path
-    layout: str                          # 'colmap' | 'blender' | 'ngp' | 'mitsuba' (a scene file, data/mitsuba_scene.py)
+    layout: str                          # 'colmap' | 'blender' | 'ngp' | 'mitsuba' (a scene file: scene_dataset.py)
     train: list[View]
     test: list[View]
     points_xyz: np.ndarray | None = field(repr=False)   # (M, 3) float32
@@ -148,7 +147,7 @@ class _Builder:
     """Turns (image file, full-resolution camera) pairs into Views for one resolution and background."""
 
     def __init__(self, resolution: int, background: np.ndarray):
-        self.r = resolution
+        self.resolution = resolution
         self.bg = tuple(float(b) for b in background)
         self._undistorters: dict[tuple, Undistorter] = {}
 
@@ -167,18 +166,19 @@ class _Builder:
         ``file_size``: the image file's (w, h) from its header. ``reduced_file``: the file is already reduced by r
         (an ``images_r`` folder), so its size may differ from round(W / r) by one pixel (other tools round
         differently) and the camera follows the file."""
+        r = self.resolution
         W, H = full_size
         fw, fh = file_size
         if reduced_file:
-            ew, eh = W / self.r, H / self.r
+            ew, eh = W / r, H / r
             if abs(fw - ew) > 1.0 or abs(fh - eh) > 1.0:
                 raise ValueError(f"{image_path}: image is {fw}x{fh}, but {source} says {W}x{H}, i.e. about "
-                                 f"{_reduced(W, self.r)}x{_reduced(H, self.r)} at resolution 1/{self.r}")
+                                 f"{_reduced(W, r)}x{_reduced(H, r)} at resolution 1/{r}")
             src = (fw, fh)
         else:
             if (fw, fh) != (W, H):
                 raise ValueError(f"{image_path}: image is {fw}x{fh}, but {source} says {W}x{H}")
-            src = (_reduced(W, self.r), _reduced(H, self.r))
+            src = (_reduced(W, r), _reduced(H, r))
         try:
             if undistorter is None:
                 fx, fy, cx, cy = pinhole
@@ -186,7 +186,7 @@ class _Builder:
                 out = src
             else:
                 pw, ph, fx, fy, cx, cy = undistorter.pinhole
-                out = (src if (pw, ph) == (W, H) else (_reduced(pw, self.r), _reduced(ph, self.r)))
+                out = (src if (pw, ph) == (W, H) else (_reduced(pw, r), _reduced(ph, r)))
                 cam = Camera(pw, ph, fx, fy, cx, cy, w2c, name).scaled(*out)
         except ValueError as e:
             raise ValueError(f"{source}: {e}") from None
@@ -228,16 +228,16 @@ def _mask_file(masks_dir: Path, image: Path, name: str, file_size: tuple[int, in
     return mask
 
 
-def _load_colmap(root: Path, b: _Builder, test_every: int, n_points: int, seed: int, masks: bool):
+def _load_colmap(root: Path, builder: _Builder, test_every: int, n_points: int, seed: int, masks: bool):
     model_dir = _colmap.find_model_dir(root)
     model = _colmap.read_model(model_dir)
     images_dir = root / "images"
-    reduced = b.r > 1 and (root / f"images_{b.r}").is_dir()
+    reduced = builder.resolution > 1 and (root / f"images_{builder.resolution}").is_dir()
     if reduced:
-        images_dir = root / f"images_{b.r}"
+        images_dir = root / f"images_{builder.resolution}"
     if not images_dir.is_dir():
         raise ValueError(f"{images_dir}: image folder not found (COLMAP layout: images/ next to sparse/)")
-    masks_dir = _masks_dir(root, b.r if reduced else 1) if masks else None
+    masks_dir = _masks_dir(root, builder.resolution if reduced else 1) if masks else None
     if masks_dir is not None:
         log.info("%s: compositing every image through its mask over the background", masks_dir)
     cam_file = model.file("cameras")
@@ -247,15 +247,15 @@ def _load_colmap(root: Path, b: _Builder, test_every: int, n_points: int, seed: 
         path = images_dir / im.name
         if not path.is_file():
             raise ValueError(f"{path}: image file not found (listed in {model.file('images')})")
-        und = None
+        undistorter = None
         if not c.is_pinhole:
-            und = b.undistorter(c.model, c.width, c.height, c.params, f"{cam_file}: camera {c.camera_id}")
+            undistorter = builder.undistorter(c.model, c.width, c.height, c.params, f"{cam_file}: camera {c.camera_id}")
         file_size = image_size(path)
         mask = (None if masks_dir is None
                 else _mask_file(masks_dir, path, im.name, file_size, (c.width, c.height)))
-        views.append(b.view(im.name, path, file_size, (c.width, c.height), im.world_to_camera,
-                            None if und else c.pinhole_intrinsics(), und,
-                            f"{cam_file} (camera {c.camera_id})", reduced_file=reduced, mask_path=mask))
+        views.append(builder.view(im.name, path, file_size, (c.width, c.height), im.world_to_camera,
+                                  None if undistorter else c.pinhole_intrinsics(), undistorter,
+                                  f"{cam_file} (camera {c.camera_id})", reduced_file=reduced, mask_path=mask))
     train, test = _split_by_index(views, test_every)
     if len(model.points_xyz):
         return train, test, model.points_xyz, model.points_rgb
@@ -274,7 +274,7 @@ def _points_around(train: list[View], n_points: int, seed: int):
 
 
 # ---------------------------------------------------------------------------------------------------- transforms
-def _frame_views(path: Path, b: _Builder, skip_missing: bool) -> list[View]:
+def _frame_views(path: Path, builder: _Builder, skip_missing: bool) -> list[View]:
     frames = _blender.read_frames(path)
     missing = [f for f in frames if not f.exists]
     if missing and not skip_missing:
@@ -287,35 +287,35 @@ def _frame_views(path: Path, b: _Builder, skip_missing: bool) -> list[View]:
     for f in frames:
         if not f.exists:
             continue
-        intr = f.intrinsics
-        w2c = np.linalg.inv(f.camera_to_world_gl @ np.diag([1.0, -1.0, -1.0, 1.0]))
+        k = f.intrinsics
+        w2c = np.linalg.inv(f.camera_to_world_gl @ GL_TO_CV)
         source = f"{path} (frame {f.index})"
-        und = None
-        if intr.distortion is not None:
-            model, params = intr.distortion
-            und = b.undistorter(model, intr.width, intr.height, params, source)
-        views.append(b.view(f.name, f.image_path, f.file_size, (intr.width, intr.height), w2c,
-                            (intr.fx, intr.fy, intr.cx, intr.cy), und, source))
+        undistorter = None
+        if k.distortion is not None:
+            model, params = k.distortion
+            undistorter = builder.undistorter(model, k.width, k.height, params, source)
+        views.append(builder.view(f.name, f.image_path, f.file_size, (k.width, k.height), w2c,
+                                  (k.fx, k.fy, k.cx, k.cy), undistorter, source))
     if not views:
         raise ValueError(f"{path}: none of the {len(frames)} frames has its image file")
     return views
 
 
-def _load_blender(root: Path, b: _Builder, test_every: int, n_points: int, seed: int):
-    train = _frame_views(root / "transforms_train.json", b, skip_missing=False)      # file order, as the reference
+def _load_blender(root: Path, builder: _Builder, test_every: int, n_points: int, seed: int):
+    train = _frame_views(root / "transforms_train.json", builder, skip_missing=False)   # file order, as the reference
     test_file = root / "transforms_test.json"
     if not test_file.is_file():
         raise ValueError(f"{test_file}: file not found (the Blender layout needs transforms_train.json and "
                          "transforms_test.json)")
-    test = _frame_views(test_file, b, skip_missing=False)
+    test = _frame_views(test_file, builder, skip_missing=False)
     if test_every == 0:
         train, test = train + test, []
     xyz, rgb = _pc.blender_random_points(n_points, seed) if n_points > 0 else (None, None)
     return train, test, xyz, rgb
 
 
-def _load_ngp(root: Path, b: _Builder, test_every: int, n_points: int, seed: int):
-    views = _frame_views(root / "transforms.json", b, skip_missing=True)
+def _load_ngp(root: Path, builder: _Builder, test_every: int, n_points: int, seed: int):
+    views = _frame_views(root / "transforms.json", builder, skip_missing=True)
     train, test = _split_by_index(views, test_every)
     return (train, test) + _points_around(train, n_points, seed)
 
@@ -338,13 +338,13 @@ def load_dataset(path: str | os.PathLike, resolution: int = _DEFAULTS.resolution
         raise ValueError(f"masks must be True or False, got {masks!r}")
     root = Path(path)
     layout = detect_layout(root)
-    b = _Builder(int(resolution), bg)
+    builder = _Builder(int(resolution), bg)
     if layout == "colmap":
-        train, test, xyz, rgb = _load_colmap(root, b, int(test_every), int(random_points), int(seed), bool(masks))
+        train, test, xyz, rgb = _load_colmap(root, builder, int(test_every), int(random_points), int(seed), bool(masks))
     elif layout == "blender":
-        train, test, xyz, rgb = _load_blender(root, b, int(test_every), int(random_points), int(seed))
+        train, test, xyz, rgb = _load_blender(root, builder, int(test_every), int(random_points), int(seed))
     else:
-        train, test, xyz, rgb = _load_ngp(root, b, int(test_every), int(random_points), int(seed))
+        train, test, xyz, rgb = _load_ngp(root, builder, int(test_every), int(random_points), int(seed))
     if not train:
         raise ValueError(f"{root}: no training views (test_every={test_every} leaves none)")
     spaces = {color_space_of(v.image_path) for v in train + test}

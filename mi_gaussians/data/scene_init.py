@@ -1,4 +1,4 @@
-"""Initial points for a Mitsuba scene dataset (``mi_gaussians.data.mitsuba_scene``).
+"""Initial points for a Mitsuba scene dataset (``mi_gaussians.data.scene_dataset``).
 
 Three methods (``SceneConfig.init``):
 
@@ -27,6 +27,7 @@ import numpy as np
 from ..imwrite import linear_to_srgb, srgb_to_linear, write_png
 from ..io_utils import atomic_path
 from . import pointcloud as _pc
+from .camera import camera_center
 
 INIT_METHODS = ("shapes", "random", "sfm")
 
@@ -168,7 +169,7 @@ def sfm_points(train_views, work: Path, linear: bool = False,
         convert(inp, work, camera_model="PINHOLE", overwrite=True, progress=log)
         model = read_model(work / "sparse" / "0")
         truth = {v.name: v.camera.center for v in train_views}
-        pairs = [(c.name, -c.world_to_camera[:3, :3].T @ c.world_to_camera[:3, 3]) for c in model.images]
+        pairs = [(c.name, camera_center(c.world_to_camera)) for c in model.images]
         pairs = [(truth[os.path.splitext(n)[0]], c) for n, c in pairs if os.path.splitext(n)[0] in truth]
         if len(pairs) < 3 or len(model.points_xyz) == 0:
             raise ValueError(f"{work}: structure from motion registered too few references ({len(pairs)}) to "
