@@ -17,7 +17,7 @@ import numpy as np
 from mi_gaussians.data.camera import Camera
 from mi_gaussians.io_utils import atomic_write_text
 
-from .splat_integrator import BACKGROUND, COLOR_SPACE, COLOR_SPACES, INTEGRATOR
+from .contract import BACKGROUND, COLOR_SPACE, COLOR_SPACES, INTEGRATOR
 
 _INDENT = "    "
 

@@ -13,10 +13,7 @@ from mi_gaussians.imwrite import SRGB_DECODE_THRESHOLD, SRGB_GAMMA, SRGB_OFFSET,
 from mi_gaussians.raster.projection import GaussianArrays
 from mi_gaussians.raster.rasterize import render_arrays
 
-# The integrator's plugin name and the XML parameters that other code writes (plugins/scene_xml.py): declared once.
-INTEGRATOR = "gaussian_splatting"
-BACKGROUND, SH_DEGREE, DEPTH_AOV, COLOR_SPACE = "background", "sh_degree", "depth_aov", "color_space"
-COLOR_SPACES = ("linear", "srgb")
+from .contract import BACKGROUND, COLOR_SPACE, COLOR_SPACES, DEPTH_AOV, INTEGRATOR, SH_DEGREE
 
 
 def gaussians_from_ellipsoids(shape, max_degree: int = 3) -> GaussianArrays:
