@@ -41,3 +41,25 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def read_json_object(path: str | os.PathLike, what: str = "file", expect: str = "a JSON object") -> dict:
+    """The JSON object in ``path``; ValueError with one line naming the file otherwise (``what`` names the kind of
+    file in the not-found message, ``expect`` what the object should hold)."""
+    import json
+
+    path = os.fspath(path)
+    try:
+        with open(path, "r", encoding="utf-8") as f:
+            d = json.load(f)
+    except FileNotFoundError:
+        raise ValueError(f"{path}: {what} not found") from None
+    except IsADirectoryError:
+        raise ValueError(f"{path}: is a folder, not a {what}") from None
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: malformed JSON ({e.msg} at line {e.lineno}, column {e.colno})") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: malformed JSON (not UTF-8 text)") from None
+    if not isinstance(d, dict):
+        raise ValueError(f"{path}: expected {expect}")
+    return d

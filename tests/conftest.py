@@ -1,4 +1,8 @@
-"""Shared fixtures: the Mitsuba variant, the shared datasets folder."""
+"""Shared fixtures: the Mitsuba variant, the shared datasets folder.
+
+Every test runs with one Mitsuba variant, ``llvm_ad_rgb`` unless ``pytest --variant NAME`` names another (e.g.
+``cuda_ad_rgb`` on a GPU machine: the whole suite then runs on CUDA unchanged). Tests that start ``mi-gs`` in a
+subprocess get the CLI's own default (``cuda_ad_rgb`` where a CUDA device exists, else ``llvm_ad_rgb``)."""
 
 from __future__ import annotations
 
@@ -7,13 +11,38 @@ from pathlib import Path
 import pytest
 
 
-@pytest.fixture(scope="session", autouse=True)
-def variant():
-    """Every test runs with the llvm_ad_rgb variant selected (the CPU variant every machine has)."""
+DEFAULT_VARIANT = "llvm_ad_rgb"     # the CPU variant every machine has
+
+
+def pytest_addoption(parser):
+    parser.addoption("--variant", default=DEFAULT_VARIANT,
+                     help=f"Mitsuba variant every test runs with (default {DEFAULT_VARIANT}; e.g. cuda_ad_rgb)")
+
+
+def pytest_configure(config):
+    """Select the variant before collection (test modules import mi_gaussians, which registers its plugins)."""
     import mitsuba as mi
 
-    mi.set_variant("llvm_ad_rgb")
-    return "llvm_ad_rgb"
+    name = config.getoption("--variant")
+    if name not in mi.variants():
+        raise pytest.UsageError(f"--variant {name}: not a Mitsuba variant of this build "
+                                f"(available: {', '.join(mi.variants())})")
+    if not (name.startswith("llvm_ad_") or name.startswith("cuda_ad_")):
+        raise pytest.UsageError(f"--variant {name}: mi-gaussians needs a JIT variant with AD (llvm_ad_*, cuda_ad_*)")
+    try:
+        mi.set_variant(name)
+    except Exception as e:    # e.g. cuda_ad_rgb on a machine without a CUDA device
+        raise pytest.UsageError(f"--variant {name}: cannot be selected here ({e})") from None
+
+
+@pytest.fixture(scope="session", autouse=True)
+def variant(request) -> str:
+    """The variant of this run (``--variant``), selected for every test."""
+    import mitsuba as mi
+
+    name = request.config.getoption("--variant")
+    mi.set_variant(name)
+    return name
 
 
 @pytest.fixture(scope="session")

@@ -46,7 +46,7 @@ def test_json_round_trip(tmp_path):
 def test_json_errors_name_the_file(tmp_path):
     p = tmp_path / "bad.json"
     p.write_text("{not json")
-    with pytest.raises(ValueError, match=r"bad\.json: not valid JSON"):
+    with pytest.raises(ValueError, match=r"bad\.json: malformed JSON"):
         Camera.from_json(p)
     p.write_text(json.dumps({"width": 10, "height": 10, "fx": 5}))
     with pytest.raises(ValueError, match=r"bad\.json: missing camera field"):

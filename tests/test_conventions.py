@@ -19,8 +19,8 @@ from mi_gaussians.model.gaussians import Gaussians
 
 
 @pytest.fixture(scope="module", autouse=True)
-def _variant():
-    mi.set_variant("llvm_ad_rgb")
+def _variant(variant):
+    mi.set_variant(variant)     # (test_plugins switches variants: start each module on the run's own)
 
 
 def sh_basis_numpy(dirs, degree):

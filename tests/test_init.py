@@ -15,8 +15,8 @@ KEYS = ("means", "scales", "rotations", "opacities", "sh_dc", "sh_rest")
 
 
 @pytest.fixture(scope="module", autouse=True)
-def _variant():
-    mi.set_variant("llvm_ad_rgb")
+def _variant(variant):
+    mi.set_variant(variant)     # (test_plugins switches variants: start each module on the run's own)
 
 
 def brute_force_scales(xyz: np.ndarray, k: int = 3) -> np.ndarray:

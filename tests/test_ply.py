@@ -27,8 +27,8 @@ KEYS = ("means", "scales", "rotations", "opacities", "sh_dc", "sh_rest")
 
 
 @pytest.fixture(scope="module", autouse=True)
-def _variant():
-    mi.set_variant("llvm_ad_rgb")
+def _variant(variant):
+    mi.set_variant(variant)     # (test_plugins switches variants: start each module on the run's own)
 
 
 def random_arrays(n: int, degree: int, seed: int = 0, odd: bool = True) -> dict[str, np.ndarray]:

@@ -166,27 +166,33 @@ def test_image_independent_of_tile_alignment():
     np.testing.assert_allclose(shifted["alpha"][3:, 5:], base["alpha"], rtol=0, atol=2e-6)
 
 
-def test_no_recompilation_per_view():
+def test_no_recompilation_per_view_and_background():
     params, cam = sf.random_scene(seed=3, n=200, sh_degree=3, width=64, height=48)
     g = mig.Gaussians.from_numpy(**params)
     for k in NAMES:
         dr.enable_grad(getattr(g, k))
     from mi_gaussians.raster.rasterize import render
 
-    def one(camera):
-        out = render(g, camera, background=BACKGROUND)
+    def one(camera, background, grad=True):
+        out = render(g, camera, background=background)
+        if not grad:
+            dr.eval(out.rgb, out.alpha, out.depth)
+            return
         dr.backward(dr.sum(out.rgb.array) + dr.sum(out.depth.array))
         dr.eval([dr.grad(getattr(g, k)) for k in NAMES])
 
     cams = [sf.generic_camera(64, 48, variant=v % 3) for v in range(10)]
     cams = [mig.Camera(c.width, c.height, c.fx * (1 + 0.01 * i), c.fy, c.cx + i, c.cy - i, c.world_to_camera)
             for i, c in enumerate(cams)]
-    one(cams[0])
-    one(cams[1])
+    backgrounds = [(0.1 * i, 1.0 - 0.05 * i, 0.5) for i in range(10)]     # (a random background per iteration)
+    for grad in (True, False):
+        one(cams[0], backgrounds[0], grad)
+        one(cams[1], backgrounds[1], grad)
     with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
         dr.kernel_history_clear()
-        for c in cams:
-            one(c)
+        for c, bg in zip(cams, backgrounds):
+            one(c, bg)
+            one(c, bg, grad=False)
         hist = dr.kernel_history()
     compiled = [h for h in hist if h["type"] == dr.KernelType.JIT and not h.get("cache_hit", False)]
     assert not compiled, f"{len(compiled)} kernels compiled while rendering 10 views"

@@ -16,7 +16,6 @@ the principal point is the image centre (the NeRF-synthetic convention, the only
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from dataclasses import dataclass, field
@@ -24,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io_utils import read_json_object
 from .camera import focal_from_fov
 from .images import image_size, resolve_image_file
 
@@ -62,17 +62,7 @@ class FrameRecord:
 def read_transforms(path: str | os.PathLike) -> dict:
     """Load a transforms json as a dict with a non-empty ``frames`` list; ``ValueError`` naming the file otherwise."""
     path = Path(path)
-    try:
-        with open(path, "r", encoding="utf-8") as f:
-            d = json.load(f)
-    except FileNotFoundError:
-        raise ValueError(f"{path}: file not found") from None
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: malformed JSON ({e.msg} at line {e.lineno}, column {e.colno})") from None
-    except UnicodeDecodeError:
-        raise ValueError(f"{path}: malformed JSON (not UTF-8 text)") from None
-    if not isinstance(d, dict):
-        raise ValueError(f"{path}: expected a JSON object with a 'frames' list")
+    d = read_json_object(path, "file", "a JSON object with a 'frames' list")
     frames = d.get("frames")
     if not isinstance(frames, list) or not frames:
         raise ValueError(f"{path}: no 'frames' list (or it is empty)")

@@ -22,6 +22,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ..io_utils import atomic_write_text, read_json_object
+
 # OpenGL/Blender camera axes (x right, y up, z back) <-> OpenCV (x right, y down, z forward): flip y and z.
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 # Mitsuba camera axes (x left, y up, z forward) <-> OpenCV: flip x and y.
@@ -137,20 +139,10 @@ class Camera:
     @classmethod
     def from_json(cls, path: str | os.PathLike) -> "Camera":
         path = os.fspath(path)
-        try:
-            with open(path, "r", encoding="utf-8") as f:
-                d = json.load(f)
-        except FileNotFoundError:
-            raise ValueError(f"{path}: camera file not found") from None
-        except json.JSONDecodeError as e:
-            raise ValueError(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
-        if not isinstance(d, dict):
-            raise ValueError(f"{path}: expected a JSON object with camera fields")
+        d = read_json_object(path, "camera file", "a JSON object with camera fields")
         return cls.from_dict(d, source=path)
 
     def to_json(self, path: str | os.PathLike) -> None:
-        from ..io_utils import atomic_write_text
-
         atomic_write_text(path, json.dumps(self.to_dict(), indent=2))
 
     # ---------------------------------------------------------------- other conventions

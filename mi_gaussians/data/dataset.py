@@ -287,15 +287,15 @@ def _frame_views(path: Path, builder: _Builder, skip_missing: bool) -> list[View
     for f in frames:
         if not f.exists:
             continue
-        k = f.intrinsics
+        intrinsics = f.intrinsics
         w2c = np.linalg.inv(f.camera_to_world_gl @ GL_TO_CV)
         source = f"{path} (frame {f.index})"
         undistorter = None
-        if k.distortion is not None:
-            model, params = k.distortion
-            undistorter = builder.undistorter(model, k.width, k.height, params, source)
-        views.append(builder.view(f.name, f.image_path, f.file_size, (k.width, k.height), w2c,
-                                  (k.fx, k.fy, k.cx, k.cy), undistorter, source))
+        if intrinsics.distortion is not None:
+            model, params = intrinsics.distortion
+            undistorter = builder.undistorter(model, intrinsics.width, intrinsics.height, params, source)
+        views.append(builder.view(f.name, f.image_path, f.file_size, (intrinsics.width, intrinsics.height), w2c,
+                                  (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy), undistorter, source))
     if not views:
         raise ValueError(f"{path}: none of the {len(frames)} frames has its image file")
     return views

@@ -1,2 +1,3 @@
-"""Optimization: photometric losses, learning-rate and SH-degree schedules, Adam set-up, adaptive density control and
-the training loop (``losses``, ``schedules``, ``optimizer``, ``densify``, ``trainer``)."""
+"""Optimization: the parameter owner (``adam``: ``GaussianAdam``), the densification ``Strategy`` interface and the
+paper's adaptive density control (``strategy``, ``densify``), the training loss, schedules and the training loop
+(``losses``, ``schedules``, ``trainer``)."""

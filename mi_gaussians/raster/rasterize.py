@@ -88,7 +88,9 @@ def render_arrays(ga: GaussianArrays | None, camera: Camera, background=(0.0, 0.
     else:
         r, gch, b, dsum, T = blend(proj.mean2d, proj.conic, proj.opacity, proj.color, proj.depth, bins, frame,
                                    cfg, stats)
-    r, gch, b = r + T * bg[0], gch + T * bg[1], b + T * bg[2]
+    # (opaque: a random background per iteration must not make every kernel a new one)
+    bgr, bgg, bgb = (dr.opaque(mi.Float, c) for c in bg)
+    r, gch, b = r + T * bgr, gch + T * bgg, b + T * bgb
     alpha = 1.0 - T
     depth = dr.select(alpha > 1e-12, dsum / fmax(alpha, 1e-12), 0.0)
     rgb = mi.TensorXf(dr.ravel(mi.Color3f(r, gch, b)), (H, W, 3))
