@@ -21,10 +21,7 @@ def owned_tensor(a: np.ndarray) -> "mi.TensorXf":
     Arrays made from NumPy are zero-copy views: later writes to ``a`` would show through, and foreign alignment makes
     kernels recompile per data set. A scatter into a Dr.Jit allocation gives a real, aligned copy."""
     a = np.ascontiguousarray(a, dtype=np.float32)
-    n = a.size
-    flat = dr.zeros(mi.Float, n)
-    if n:
-        dr.scatter(flat, mi.Float(a.reshape(-1)), dr.arange(mi.UInt32, n))
+    flat = owned_array(mi.Float, a)
     dr.eval(flat)
     return mi.TensorXf(flat, a.shape)
 
