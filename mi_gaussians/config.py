@@ -120,6 +120,8 @@ class TrainConfig:
     checkpoint_every: int = 1000             # iterations between checkpoints (and the last iteration)
     eval_every: int = 1000                   # iterations between test-set evaluations for the curves (0: only at the end)
     save_iterations: tuple[int, ...] = (7_000, 30_000)   # also write point_cloud_<iter>.ply at these iterations
+    freeze: bool = True                      # record the training step once and replay it (dr.freeze, no host sync
+                                             # per iteration); false: trace every iteration (same results, slower)
 
     def to_dict(self) -> dict:
         import dataclasses

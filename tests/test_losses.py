@@ -273,11 +273,17 @@ def test_default_lambda_matches_config():
 
 # --------------------------------------------------------------------------------------------------- compilation
 def test_no_recompilation_for_new_images_of_the_same_size():
-    """After one call, three calls on other images (and another lambda) of that size compile no new kernel.
-    (The images are made beforehand: copying NumPy arrays in may compile kernels of its own.)"""
+    """After one call, calls on other images (and other lambdas) of that size compile no new kernel.
+
+    A kernel specialized on a value (an image, a lambda baked in as a literal) would be compiled anew on every new
+    value. Dr.Jit can also, rarely, emit the same kernel with its statements in another order when variable indices
+    were recycled differently (it depends on what earlier code freed), which is a cache miss too but no
+    specialization. So two rounds of three calls run, each on new images and new lambdas: a specialization misses in
+    both rounds, an ordering accident (seen about once in many suite runs, on a loaded CPU and on CUDA) in one at
+    most. (The images are made beforehand: copying NumPy arrays in may compile kernels of its own.)"""
     rng = np.random.default_rng(10)
     shape = (40, 56, 3)
-    images = [owned_tensor(rng.random(shape)) for _ in range(16)]
+    images = [owned_tensor(rng.random(shape)) for _ in range(28)]
     dr.eval(images)
 
     def step(k, lam):
@@ -294,16 +300,20 @@ def test_no_recompilation_for_new_images_of_the_same_size():
     gc.collect()
     gc.disable()               # ... nor freed by the collector in the middle of them
     dr.set_flag(dr.JitFlag.KernelHistory, True)
+    rounds = []
     try:
         step(0, 0.2)
         dr.kernel_history()                                       # clear
-        for k, lam in enumerate((0.2, 0.3, 0.2), start=1):
-            step(k, lam)
-        jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+        for calls in (((1, 0.3), (2, 0.25), (3, 0.35)), ((4, 0.15), (5, 0.45), (6, 0.1))):
+            for k, lam in calls:
+                step(k, lam)
+            rounds.append([k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT])
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
         gc.enable()
-    assert jit and all(k["cache_hit"] for k in jit), [(k["size"], k["cache_hit"], k["hash"]) for k in jit]
+    assert all(rounds)
+    missed = [[(k["size"], k["hash"]) for k in jit if not k["cache_hit"]] for jit in rounds]
+    assert not all(missed), f"kernels compiled anew in both rounds: {missed}"
 
 
 def test_short_blocks(monkeypatch):

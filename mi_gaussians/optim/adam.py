@@ -27,6 +27,10 @@ backpropagates into these same leaves next, and a carried gradient would be adde
 steps anyway gets a zero-gradient Adam step: rows with zero moments (new rows) stay exactly in place, kept rows coast
 on their decayed momentum.
 
+Frozen training steps. ``GaussianAdam`` is a Dr.Jit PyTree (``DRJIT_STRUCT``): a function frozen with ``dr.freeze``
+can take it as an input, step it (:meth:`step` with an ``active`` flag and a learning rate held in a Dr.Jit value)
+and the replays write the new tensors back into it (see :mod:`.train_step`).
+
 SH degree 0: ``sh_rest`` is then an (N, 0, 3) tensor, and Dr.Jit refuses to register an empty parameter, so it is not
 registered; the view gives an empty (N, 0, 3) tensor of the right N.
 
@@ -136,6 +140,9 @@ class GaussianAdam:
     ``g``'s values are copied in; ``g`` is not kept. Every registered parameter has its own learning rate
     (:func:`learning_rates`); the global rate is 0, so nothing moves at a guessed rate."""
 
+    # a PyTree for dr.freeze: the wrapped optimizer (itself a DRJIT_STRUCT of its rates and state) is traversed
+    DRJIT_STRUCT = {"_adam": object}
+
     def __init__(self, g: Gaussians, cfg: OptimConfig, extent: float):
         if g.n == 0:
             raise ValueError("the model has no Gaussians (Dr.Jit refuses empty parameters)")
@@ -147,6 +154,11 @@ class GaussianAdam:
                 self._adam[key] = value
         rates = learning_rates(cfg, extent)
         self._adam.set_learning_rate({k: rates[k] for k in self.keys()})
+        for key in self.keys():
+            # Dr.Jit registers t as the literal 0, and literal + 1 stays a literal: the bias correction would be a
+            # new constant in some kernel on every step (a recompilation), and a literal input of a frozen step
+            value, promoted, lr, (t, m, v, vmax) = self._adam.state[key]
+            self._adam.state[key] = (value, promoted, lr, (dr.opaque(type(t), 0, 1), m, v, vmax))
 
     # ------------------------------------------------------------------ reading
     @property
@@ -176,11 +188,14 @@ class GaussianAdam:
         return Gaussians(**{key: self[key] for key in PARAMETER_NAMES})
 
     def learning_rate(self, key: str) -> float | None:
-        return self._adam.learning_rate(key)
+        """The rate of ``key`` as a float (a rate held in a Dr.Jit value is read back)."""
+        lr = self._adam.learning_rate(key)
+        return float(lr[0]) if dr.is_array_v(lr) else lr
 
-    def set_learning_rate(self, key: str, lr: float) -> None:
-        """A Python float: Dr.Jit passes learning rates to the update kernel as opaque values (no recompilation)."""
-        self._adam.set_learning_rate({key: float(lr)})
+    def set_learning_rate(self, key: str, lr) -> None:
+        """A Python float (Dr.Jit passes it to the update kernel as an opaque value: no recompilation), or a 1-element
+        ``mi.Float`` (inside a frozen step, where a Python float would be part of the recording's key)."""
+        self._adam.set_learning_rate({key: lr if dr.is_array_v(lr) else float(lr)})
 
     @property
     def epsilon(self) -> float:
@@ -197,9 +212,26 @@ class GaussianAdam:
         return int(np.array(t).reshape(-1)[0]), np.array(m).reshape(shape), np.array(v).reshape(shape)
 
     # ------------------------------------------------------------------ optimizing
-    def step(self) -> None:
-        """One Adam step of every parameter from its gradient (``dr.backward`` through a render of the view)."""
-        self._adam.step()
+    def step(self, active=None) -> None:
+        """One Adam step of every parameter from its gradient (``dr.backward`` through a render of the view).
+
+        ``active``: a 1-element ``mi.Bool``; where it is False nothing changes -- values, moments AND the step count
+        ``t`` (Dr.Jit's own ``active`` leaves ``t`` counting, a known issue it documents), so a masked step is no step.
+        """
+        before = {key: self._adam.state[key] for key in self.keys()}
+        for key, (value, promoted, lr, extra) in before.items():
+            if dr.is_array_v(lr):
+                # Dr.Jit's learning-rate cache multiplies a rate held in an array in place (``scale *= factor``):
+                # give it a copy, so the rate we hold stays the rate that was set
+                self._adam.state[key] = (value, promoted, type(lr)(lr), extra)
+        self._adam.step(active=active, eval=False)
+        for key, (_, _, lr, (t_old, _, _, _)) in before.items():
+            value, promoted, _, (t, m, v, vmax) = self._adam.state[key]
+            if active is not None:
+                t = dr.select(active, t, t_old)
+                dr.schedule(t)
+            self._adam.state[key] = (value, promoted, lr, (t, m, v, vmax))
+        dr.eval()
 
     def clear_grads(self) -> None:
         """Zero the gradient of every parameter (values and Adam state untouched)."""

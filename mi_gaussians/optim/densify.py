@@ -91,9 +91,10 @@ class DensifyState:
         return dr.width(self.grad_accum)
 
     def reset(self, n: int) -> None:
-        """Zero statistics for ``n`` Gaussians (the counter carries on)."""
-        self.grad_accum, self.denom = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
-        self.max_radii = dr.zeros(mi.Int32, n)
+        """Zero statistics for ``n`` Gaussians (the counter carries on). Opaque arrays, not literals: a frozen step
+        taking the state would otherwise see literal inputs once and evaluated ones after, and record twice."""
+        self.grad_accum, self.denom = dr.opaque(mi.Float, 0, n), dr.opaque(mi.Float, 0, n)
+        self.max_radii = dr.opaque(mi.Int32, 0, n)
 
 
 def _rows3(t) -> "mi.Vector3f":
@@ -165,10 +166,10 @@ class DefaultStrategy(Strategy):
                              "change rows only through the strategy")
         self._accumulate(state, out)
 
-        if step > cfg.densify_from_iter and step % cfg.densification_interval == 0:
+        if self._densifies_at(step):
             info.cloned, info.split, info.pruned = self._densify_and_prune(params, state, step)
             info.densified = info.changed = True
-        if step % cfg.opacity_reset_interval == 0 or (self.white_background and step == cfg.densify_from_iter):
+        if self._resets_at(step):
             info.reset = self._reset_opacity(params)
             info.opacity_reset = info.changed = True
         if info.changed:
@@ -179,8 +180,26 @@ class DefaultStrategy(Strategy):
             info.n = params.n
         return info
 
+    def _densifies_at(self, step: int) -> bool:
+        cfg = self.cfg
+        return cfg.densify_from_iter < step < cfg.densify_until_iter and step % cfg.densification_interval == 0
+
+    def _resets_at(self, step: int) -> bool:
+        cfg = self.cfg
+        return step < cfg.densify_until_iter and (
+            step % cfg.opacity_reset_interval == 0 or (self.white_background and step == cfg.densify_from_iter))
+
+    def refines_at(self, step: int) -> bool:
+        return self._densifies_at(step) or self._resets_at(step)
+
+    def updates_state_at(self, step: int) -> bool:
+        return step < self.cfg.densify_until_iter
+
+    def update_state(self, state: DensifyState, out, active=True) -> None:
+        self._accumulate(state, out, active)
+
     # ------------------------------------------------------------------ pieces
-    def _accumulate(self, st: DensifyState, out) -> None:
+    def _accumulate(self, st: DensifyState, out, active=True) -> None:
         radii = out.radii
         if dr.width(radii) != st.n:
             raise ValueError(f"render output has {dr.width(radii)} Gaussians, the statistics {st.n}")
@@ -189,7 +208,7 @@ class DefaultStrategy(Strategy):
         # the reference rasterizer reports dL/d(mean2d) in NDC units: pixel gradient times W/2 and H/2
         gx = grad.x * dr.opaque(mi.Float, 0.5 * float(width))
         gy = grad.y * dr.opaque(mi.Float, 0.5 * float(height))
-        visible = radii > 0
+        visible = (radii > 0) & active
         st.grad_accum = dr.select(visible, st.grad_accum + dr.sqrt(dr.fma(gx, gx, gy * gy)), st.grad_accum)
         st.denom = dr.select(visible, st.denom + 1.0, st.denom)
         st.max_radii = dr.select(visible & (radii > st.max_radii), radii, st.max_radii)

@@ -15,6 +15,18 @@ One training step (see :mod:`.trainer`)::
     if not info.changed:          # rows were rebuilt: the reference's Adam skips that step
         params.step()
 
+A frozen training step (:mod:`.train_step`) cannot read anything back to the host, so the post-backward hook comes in
+two parts as well: :meth:`Strategy.update_state` (device arithmetic only, masked by ``active``) runs inside the
+frozen step on every iteration, and the trainer runs the whole :meth:`Strategy.step_post_backward` unfrozen on the
+iterations where :meth:`Strategy.refines_at` says rows or values may change (those may synchronize)::
+
+    if strategy.refines_at(step):
+        ...the step above...
+    else:                         # frozen: no host work, no synchronization
+        if strategy.updates_state_at(step):
+            strategy.update_state(state, out, active=ok)
+        params.step(active=ok)
+
 To add a strategy: subclass :class:`Strategy`, give it a state dataclass, implement the hooks (and
 :meth:`Strategy.export_state` / :meth:`Strategy.import_state` for checkpoints), and select it in the trainer.
 :class:`~mi_gaussians.optim.densify.DefaultStrategy` (the paper's adaptive density control) is the reference
@@ -50,8 +62,9 @@ class Strategy:
         """A fresh state for a model of ``n`` Gaussians."""
         raise NotImplementedError
 
-    def step_pre_backward(self, params, state, step: int, out) -> None:
-        """Called after the render of iteration ``step`` and before ``dr.backward``. Our rasterizer always records
+    def step_pre_backward(self, params, state, step: int | None, out) -> None:
+        """Called after the render of iteration ``step`` and before ``dr.backward``; a frozen step calls it with
+        ``step=None`` while it records (so it must do device work only, the same on every iteration). Our rasterizer always records
         what densification needs from the backward pass (``RenderOutput.means2d_grad``), so the default does
         nothing; a strategy that must mark something for the backward pass overrides it."""
 
@@ -59,6 +72,20 @@ class Strategy:
         """Called after ``dr.backward`` and before the Adam step: update the statistics in ``state`` from ``out``
         (the :class:`~mi_gaussians.raster.rasterize.RenderOutput` of this iteration) and change rows through
         ``params`` when due."""
+        raise NotImplementedError
+
+    def refines_at(self, step: int) -> bool:
+        """True when :meth:`step_post_backward` may change rows or values at iteration ``step`` (host work)."""
+        raise NotImplementedError
+
+    def updates_state_at(self, step: int) -> bool:
+        """True when :meth:`update_state` does anything at iteration ``step`` (a frozen step records one variant with
+        the update and one without)."""
+        return True
+
+    def update_state(self, state, out, active=True) -> None:
+        """The statistics part of :meth:`step_post_backward`: device arithmetic only (no readback), left unchanged
+        where the 1-element ``mi.Bool`` ``active`` is False. Used by frozen steps on iterations that do not refine."""
         raise NotImplementedError
 
     def export_state(self, state) -> tuple[dict[str, np.ndarray], dict]:

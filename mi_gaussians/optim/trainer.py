@@ -32,18 +32,37 @@ from ..drjit_utils import owned_tensor
 from ..evaluate import evaluate_views, scores_report, summarize
 from ..io_utils import atomic_path
 from ..model.gaussians import Gaussians
+from ..raster.projection import ViewParams
 from ..raster.rasterize import render
 from .. import report
 from .adam import GaussianAdam
 from .densify import DefaultStrategy
 from .losses import photometric_loss
 from .schedules import expon_lr, sh_degree_at
+from .train_step import StepInputs, TrainStep, capacity_for, composite_target
 
 CHECKPOINT = Path("checkpoints") / "ckpt.npz"
+
+# Frozen iterations queued between two reads of their losses and flags (progress bar, history, overflow, NaN). More
+# keeps the device busier; fewer wastes fewer iterations when one overflows its instance capacity and is replayed.
+SYNC_EVERY = 25
 
 
 class TrainingDiverged(RuntimeError):
     """The loss or a parameter became NaN/Inf."""
+
+
+@dataclass
+class _Pending:
+    """A queued frozen iteration: its view, the random streams' states before it (to replay it) and its device
+    results."""
+
+    step: int
+    view: int
+    host: tuple
+    loss: "mi.Float"
+    ok: "mi.Bool"
+    instances: "mi.UInt32"
 
 
 @dataclass
@@ -110,6 +129,18 @@ class Trainer:
         self.strategy = DefaultStrategy(cfg.densify, self.extent, seed=cfg.seed + 2,
                                         white_background=self.background == (1.0, 1.0, 1.0))
         self.strategy_state = self.strategy.initialize_state(self.params.n)
+        # the frozen training step (see train_step.py) and the state of the loop around it
+        self.train_step = TrainStep(self.strategy, cfg.raster, cfg.optim.lambda_dssim, self.background,
+                                    freeze=cfg.freeze)
+        self.capacity: int | None = None   # tile-instance capacity of frozen steps (set by the first traced one)
+        self.overflows = 0                 # instance-capacity overflows (each replays frozen iterations)
+        self.syncs = 0                     # device reads of the loop (a densification step's own are not counted)
+        self._peak = 0                     # most instances a committed frozen step needed since the last traced one
+        self._pending: list[_Pending] = []
+        self._valid = None                 # the last queued step's ok flag (chained into the next)
+        self._views: list | None = None    # ViewParams per training view, built on first use
+        self._bar, self._ema, self._last_psnr = None, None, None
+        self._t0 = time.perf_counter()
 
     @property
     def gaussians(self) -> Gaussians:
@@ -165,31 +196,39 @@ class Trainer:
 
     def target(self, idx: int, bg) -> "mi.TensorXf":
         """Training view ``idx``'s image over background ``bg`` (only RGBA images change with the background)."""
-        target = self.targets[idx]
-        if self.transparency is not None:
-            # image = straight * a + fixed_bg * (1 - a)  ->  straight * a + bg * (1 - a)
-            delta = mi.TensorXf(mi.Float([b - f for b, f in zip(bg, self.background)]), (1, 1, 3))
-            target = target + self.transparency[idx] * delta
-        return target
+        transparency = None if self.transparency is None else self.transparency[idx]
+        return composite_target(self.targets[idx], transparency, bg, self.background)
 
     # ------------------------------------------------------------------ one iteration
-    def _iteration(self, step: int) -> float:
+    def _means_lr(self, step: int) -> float:
+        o = self.cfg.optim
+        return self.extent * expon_lr(step, o.position_lr_init, o.position_lr_final, o.position_lr_max_steps,
+                                      delay_steps=o.position_lr_delay_steps, delay_mult=o.position_lr_delay_mult)
+
+    def _draw(self) -> tuple[int, tuple]:
+        """The training view and the background colour of the next iteration (advances both random streams)."""
+        idx = self.sampler.next()
+        bg = tuple(self.bg_rng.random(3)) if self.cfg.optim.random_background else self.background
+        return idx, bg
+
+    def _iteration(self, step: int) -> tuple[float, int]:
+        """One traced iteration (synchronizes: reads the loss and the instance count back); runs the strategy's
+        refinements. Returns (loss, tile instances)."""
         cfg = self.cfg
         o = cfg.optim
-        self.params.set_learning_rate("means", self.extent * expon_lr(
-            step, o.position_lr_init, o.position_lr_final, o.position_lr_max_steps,
-            delay_steps=o.position_lr_delay_steps, delay_mult=o.position_lr_delay_mult))
+        # (a Dr.Jit value, as in the frozen step, so both paths leave the optimizer state of the same type)
+        self.params.set_learning_rate("means", dr.opaque(mi.Float, self._means_lr(step)))
         g = self.params.gaussians
         degree = sh_degree_at(step, g.sh_degree, o.sh_increase_interval)
-        idx = self.sampler.next()
+        idx, bg = self._draw()
         view = self.ds.train[idx]
-        bg = tuple(self.bg_rng.random(3)) if o.random_background else self.background
         out = render(g, view.camera, background=bg, sh_degree=degree, cfg=cfg.raster)
         self.strategy.step_pre_backward(self.params, self.strategy_state, step, out)
         loss = photometric_loss(out.rgb, self.target(idx, bg), o.lambda_dssim)
         # (a view where nothing is visible gives a loss that does not depend on the parameters)
         dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
         value = float(loss[0])
+        self.syncs += 2          # (this read, and the binning's read of its instance count)
         if not math.isfinite(value):
             raise TrainingDiverged(f"the loss became {value} at iteration {step} (view {view.name}); the last good "
                                    f"checkpoint ({self.out / CHECKPOINT}) is kept")
@@ -198,7 +237,115 @@ class Trainer:
             # (after a densification step the reference's parameters are new tensors without gradients, so its
             # Adam step skips them: we do the same)
             self.params.step()
-        return value
+        return value, int(out.n_instances)
+
+    def _traced_at(self, step: int) -> bool:
+        """Whether iteration ``step`` runs traced: always without freezing; else the first one (it measures the
+        instance count) and those where the strategy refines (host work that may synchronize anyway)."""
+        return not self.cfg.freeze or self.capacity is None or self.strategy.refines_at(step)
+
+    def _set_capacity_after_traced(self, instances: int, n_before: int) -> None:
+        """The frozen steps' instance capacity after a traced iteration: room for 1.3 times what it needed, or for
+        the peak of the frozen steps before it scaled by the change in the number of Gaussians."""
+        scaled = self._peak * self.params.n / max(n_before, 1)
+        self.capacity = capacity_for(1.3 * max(instances, scaled, 1))
+        self._peak = 0
+
+    def _view_params(self, idx: int) -> ViewParams:
+        if self._views is None:
+            self._views = [None] * len(self.ds.train)
+        if self._views[idx] is None:
+            self._views[idx] = ViewParams.from_camera(self.ds.train[idx].camera)
+        return self._views[idx]
+
+    def _dispatch(self, step: int) -> None:
+        """Queue frozen iteration ``step`` (no synchronization); its results are read by :meth:`_resolve`."""
+        cfg = self.cfg
+        host = (self.sampler.state(), self.bg_rng.bit_generator.state)
+        idx, bg = self._draw()
+        inputs = StepInputs(target=self.targets[idx],
+                            transparency=None if self.transparency is None else self.transparency[idx],
+                            view=self._view_params(idx), background=tuple(dr.opaque(mi.Float, b) for b in bg),
+                            means_lr=dr.opaque(mi.Float, self._means_lr(step)))
+        degree = sh_degree_at(step, self.params.gaussians.sh_degree, cfg.optim.sh_increase_interval)
+        if self._valid is None:
+            self._valid = dr.opaque(mi.Bool, True)
+        loss, ok, instances = self.train_step(self.params, self.strategy_state, inputs, self._valid, degree,
+                                              self.strategy.updates_state_at(step), self.capacity)
+        self._valid = ok
+        self._pending.append(_Pending(step, idx, host, loss, ok, instances))
+        self.step = step
+
+    def _resolve(self) -> bool:
+        """Read the queued frozen iterations' losses and flags (one synchronization) and commit them. On an instance
+        overflow: enlarge the capacity and rewind to the failed iteration (the model is as before it, every later
+        step having been masked) and return False. On a non-finite loss: raise :class:`TrainingDiverged`."""
+        pending, self._pending = self._pending, []
+        if not pending:
+            return True
+        dr.sync_thread()
+        self.syncs += 1
+        for p in pending:
+            ok, loss, instances = bool(p.ok[0]), float(p.loss[0]), int(p.instances[0])
+            if not ok:
+                self._valid = None
+                if instances > self.capacity:
+                    self.capacity = capacity_for(1.25 * instances)
+                    self.overflows += 1
+                    self.sampler.restore(p.host[0])
+                    self.bg_rng.bit_generator.state = p.host[1]
+                    self.step = p.step - 1
+                    return False
+                raise TrainingDiverged(f"the loss became {loss} at iteration {p.step} (view "
+                                       f"{self.ds.train[p.view].name}); the last good checkpoint "
+                                       f"({self.out / CHECKPOINT}) is kept")
+            self._peak = max(self._peak, instances)
+            self._commit(p.step, loss)
+        return True
+
+    def _commit(self, step: int, loss: float) -> None:
+        """Record a finished iteration (history, progress bar)."""
+        self._ema = loss if self._ema is None else 0.4 * loss + 0.6 * self._ema
+        self.history.iteration.append(step)
+        self.history.loss.append(loss)
+        self.history.gaussians.append(self.params.n)
+        self.history.seconds.append(round(self.elapsed + time.perf_counter() - self._t0, 4))
+        if self._bar is not None:
+            self._bar.update(1)
+            if step % 10 == 0 or step == self.cfg.optim.iterations:
+                post = {"loss": f"{self._ema:.4f}", "N": f"{self.params.n:,}"}
+                if self._last_psnr is not None:
+                    post["PSNR"] = f"{self._last_psnr:.2f}"
+                self._bar.set_postfix(post, refresh=False)
+
+    def _host_work_at(self, step: int) -> bool:
+        cfg = self.cfg
+        return (bool(cfg.eval_every) and step % cfg.eval_every == 0 or step == cfg.optim.iterations
+                or step in cfg.save_iterations or step % cfg.checkpoint_every == 0)
+
+    def advance(self) -> None:
+        """Run the next iteration (traced or frozen); frozen ones are committed every :data:`SYNC_EVERY` iterations
+        and before any host work. Afterwards ``self.step`` is the last iteration run or queued (a rewind after an
+        instance overflow moves it back)."""
+        step = self.step + 1
+        self._t0 = time.perf_counter()
+        try:
+            if self._traced_at(step):
+                if not self._resolve():
+                    return
+                n_before = self.params.n
+                loss, instances = self._iteration(step)
+                self.step = step
+                self._commit(step, loss)
+                if self.cfg.freeze:
+                    self._set_capacity_after_traced(instances, n_before)
+            else:
+                self._dispatch(step)
+                if self._host_work_at(step) or len(self._pending) >= SYNC_EVERY:
+                    self._resolve()
+        finally:
+            self.elapsed += time.perf_counter() - self._t0
+            self._t0 = time.perf_counter()
 
     # ------------------------------------------------------------------ evaluation
     def _test_psnr(self) -> float | None:
@@ -220,37 +367,32 @@ class Trainer:
             saved["references"] = str(Path(self.ds.references).resolve())
         report.write_json(self.out / "config.json", saved)
         total = cfg.optim.iterations
-        bar = tqdm(total=total, initial=self.step, disable=not self.progress, unit="it", dynamic_ncols=True)
-        ema, last_psnr = None, (self.history.test_psnr[-1] if self.history.test_psnr else None)
+        self._bar = tqdm(total=total, initial=self.step, disable=not self.progress, unit="it", dynamic_ncols=True)
+        self._ema = None
+        self._last_psnr = self.history.test_psnr[-1] if self.history.test_psnr else None
+        done = self.step                         # the last iteration whose evaluation / saving / checkpoint ran
         try:
-            while self.step < total:
-                step = self.step + 1
-                t0 = time.perf_counter()
-                loss = self._iteration(step)
-                self.elapsed += time.perf_counter() - t0
-                self.step = step
-                ema = loss if ema is None else 0.4 * loss + 0.6 * ema
-                self.history.iteration.append(step)
-                self.history.loss.append(loss)
-                self.history.gaussians.append(self.params.n)
-                self.history.seconds.append(round(self.elapsed, 4))
+            while self.step < total or self._pending:
+                if self.step < total:
+                    self.advance()
+                else:
+                    self._resolve()
+                step = self.step
+                if self._pending or step <= done or not self._host_work_at(step):
+                    continue
+                done = step                      # (a rewind never goes back past it: it was synchronized)
                 if cfg.eval_every and step % cfg.eval_every == 0 or step == total:
-                    last_psnr = self._test_psnr()
-                    if last_psnr is not None:
+                    self._last_psnr = self._test_psnr()
+                    if self._last_psnr is not None:
                         self.history.eval_iteration.append(step)
-                        self.history.test_psnr.append(last_psnr)
+                        self.history.test_psnr.append(self._last_psnr)
                 if step in cfg.save_iterations and step != total:
                     self.gaussians.save_ply(self.out / f"point_cloud_{step}.ply")
                 if step % cfg.checkpoint_every == 0 or step == total:
                     self.save_checkpoint()
-                bar.update(1)
-                if step % 10 == 0 or step == total:
-                    post = {"loss": f"{ema:.4f}", "N": f"{self.params.n:,}"}
-                    if last_psnr is not None:
-                        post["PSNR"] = f"{last_psnr:.2f}"
-                    bar.set_postfix(post)
         finally:
-            bar.close()
+            self._bar.close()
+            self._bar = None
         return self.finish()
 
     def finish(self) -> dict:

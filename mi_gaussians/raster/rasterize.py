@@ -33,7 +33,8 @@ class RenderOutput:
     alpha: "mi.TensorXf"
     depth: "mi.TensorXf"
     radii: "mi.Int32"
-    n_instances: int          # (Gaussian, tile) pairs blended
+    n_instances: object       # (Gaussian, tile) pairs blended: int; with a capacity, a device mi.UInt32 (width 1)
+    fits: object = True       # with a capacity: mi.Bool (width 1), the instances fitted (else do not use the image)
     _stats: BlendStats = field(repr=False, default=None)
 
     @property
@@ -44,34 +45,38 @@ class RenderOutput:
         return self._stats.means2d_grad
 
 
-def _check_background(background) -> tuple[float, float, float]:
-    bg = tuple(float(b) for b in background)
+def _background(background) -> tuple:
+    """Three opaque ``mi.Float`` values: a random background per iteration must not make every kernel a new one.
+    Dr.Jit values (e.g. the inputs of a frozen training step) are used as they are."""
+    bg = tuple(background)
     if len(bg) != 3:
         raise ValueError(f"background must have 3 components (r, g, b), got {background!r}")
-    return bg
+    return tuple(b if dr.is_array_v(b) else dr.opaque(mi.Float, float(b)) for b in bg)
 
 
-def render(g: Gaussians, camera: Camera, background=(0.0, 0.0, 0.0), sh_degree: int | None = None,
-           cfg: RasterConfig = RasterConfig()) -> RenderOutput:
-    """Render raw 3DGS parameters (see the module docstring)."""
+def render(g: Gaussians, camera: Camera | ViewParams, background=(0.0, 0.0, 0.0), sh_degree: int | None = None,
+           cfg: RasterConfig = RasterConfig(), capacity: int | None = None) -> RenderOutput:
+    """Render raw 3DGS parameters (see the module docstring). ``capacity``: a fixed length of the tile-instance list,
+    for a frozen training step that cannot read the count back (see :mod:`.binning`; check ``out.fits``)."""
     deg = g.sh_degree if sh_degree is None else int(sh_degree)
     if deg < 0 or deg > g.sh_degree:
         raise ValueError(f"sh_degree {sh_degree} is outside 0..{g.sh_degree} (the model's SH degree)")
     ga = GaussianArrays.from_gaussians(g, deg) if g.n > 0 else None
-    return render_arrays(ga, camera, background, cfg)
+    return render_arrays(ga, camera, background, cfg, capacity)
 
 
-def render_arrays(ga: GaussianArrays | None, camera: Camera, background=(0.0, 0.0, 0.0),
-                  cfg: RasterConfig = RasterConfig()) -> RenderOutput:
-    """Render activated Gaussians (``None`` or N = 0: an empty scene)."""
-    bg = _check_background(background)
-    W, H = camera.width, camera.height
+def render_arrays(ga: GaussianArrays | None, camera: Camera | ViewParams, background=(0.0, 0.0, 0.0),
+                  cfg: RasterConfig = RasterConfig(), capacity: int | None = None) -> RenderOutput:
+    """Render activated Gaussians (``None`` or N = 0: an empty scene) for a camera or its prepared
+    :class:`ViewParams`. ``capacity``: see :func:`~mi_gaussians.raster.binning.bin_gaussians`."""
+    bg = _background(background)
+    view = camera if isinstance(camera, ViewParams) else ViewParams.from_camera(camera)
+    W, H = view.width, view.height
     tiles_x, tiles_y = (W + TILE - 1) // TILE, (H + TILE - 1) // TILE
 
-    view = ViewParams.from_camera(camera)
     if ga is not None and dr.width(ga.opacity) > 0:
         proj = project(ga, view, cfg)
-        bins = bin_gaussians(proj.depth, proj.rect, proj.tile_count, tiles_x, tiles_y)
+        bins = bin_gaussians(proj.depth, proj.rect, proj.tile_count, tiles_x, tiles_y, capacity)
         radii = proj.radii
     else:
         proj = None
@@ -82,17 +87,16 @@ def render_arrays(ga: GaussianArrays | None, camera: Camera, background=(0.0, 0.
     frame = make_frame(W, H, tiles_x)
     stats = BlendStats()
     npix = W * H
-    if bins.n_instances == 0:
+    if capacity is None and bins.n_instances == 0:
         r, gch, b, dsum = (dr.zeros(mi.Float, npix) for _ in range(4))
         T = dr.full(mi.Float, 1.0, npix)
     else:
         r, gch, b, dsum, T = blend(proj.mean2d, proj.conic, proj.opacity, proj.color, proj.depth, bins, frame,
                                    cfg, stats)
-    # (opaque: a random background per iteration must not make every kernel a new one)
-    bgr, bgg, bgb = (dr.opaque(mi.Float, c) for c in bg)
+    bgr, bgg, bgb = bg
     r, gch, b = r + T * bgr, gch + T * bgg, b + T * bgb
     alpha = 1.0 - T
     depth = dr.select(alpha > 1e-12, dsum / fmax(alpha, 1e-12), 0.0)
     rgb = mi.TensorXf(dr.ravel(mi.Color3f(r, gch, b)), (H, W, 3))
     return RenderOutput(rgb=rgb, alpha=mi.TensorXf(alpha, (H, W)), depth=mi.TensorXf(depth, (H, W)),
-                        radii=radii, n_instances=bins.n_instances, _stats=stats)
+                        radii=radii, n_instances=bins.n_instances, fits=bins.fits, _stats=stats)

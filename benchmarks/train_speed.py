@@ -1,0 +1,181 @@
+"""Training-loop throughput: the frozen training step (``dr.freeze``, the default) against the traced loop
+(``--set freeze=false``, every iteration traced in Python and synchronized), in the same run.
+
+    python benchmarks/train_speed.py                                  # synthetic 200x200/50k and 800x800/300k
+    python benchmarks/train_speed.py --cases 200:50000 --iterations 40
+    python benchmarks/train_speed.py --cases mi_objects_colmap --iterations 2000   # a real run's first iterations
+    python benchmarks/train_speed.py --variant cuda_ad_rgb
+
+Per case and loop it prints:
+- iterations/s: wall clock over the measured iterations (after a warm-up that compiles and records);
+- host ms/it: time the host spends tracing, recording or replaying, and launching: the same iterations run with
+  ``JitFlag.LaunchBlocking`` (each kernel finishes before the host goes on), minus the kernels' own time;
+- kernel ms/it and kernels/it: ``dr.kernel_history()`` over the measured iterations (every entry: compiled kernels,
+  sorts, reductions, memsets, copies);
+- syncs/it: times the training loop waited for the device to read values back (a traced iteration: the binning's
+  instance count and the loss; frozen: one read of the queued iterations' losses and flags every
+  ``trainer.SYNC_EVERY`` iterations and at evaluations, checkpoints and densification steps; the reads inside a
+  densification step are not counted);
+- the ratio of iterations/s, frozen over traced.
+
+Synthetic cases ``RES:N`` train N Gaussians (``benchmarks/render.py``'s scene, same seed, initialized from noisy
+positions) against 8 renders of that scene at RES x RES, without densification (a fixed model size). A dataset case
+trains the default schedule from its first iteration (densification included), as ``benchmarks/train.py`` does;
+``mi_objects_colmap`` is 200x200 with 2,274 SfM points (``../shared/data``, skipped when absent).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+
+class _MemoryLoader:
+    """A view's image held in memory (the synthetic cases have no files)."""
+
+    def __init__(self, img):
+        self.img = img
+
+    def load(self, path):
+        return self.img, None
+
+
+def synthetic_dataset(res: int, n: int):
+    import mitsuba as mi  # noqa: F401  (the variant is set)
+
+    from mi_gaussians.data.camera import Camera
+    from mi_gaussians.data.dataset import Dataset, View
+    from mi_gaussians.model.gaussians import Gaussians
+    from mi_gaussians.raster.rasterize import render
+    from render import make_scene
+
+    scene = make_scene(n)
+    g = Gaussians.from_numpy(**scene)
+    views = []
+    for i in range(8):
+        a = (i - 3.5) * 0.03
+        w2c = np.eye(4)
+        w2c[:3, :3] = [[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]]
+        f = res / (2.0 * np.tan(0.6))
+        cam = Camera(world_to_camera=w2c, width=res, height=res, fx=f, fy=f, cx=res / 2, cy=res / 2)
+        img = np.array(render(g, cam).rgb, dtype=np.float32)
+        views.append(View(name=f"view{i}", camera=cam, image_path=Path(f"view{i}"), loader=_MemoryLoader(img)))
+    rng = np.random.default_rng(1)
+    points = (scene["means"] + rng.normal(0.0, 0.01, scene["means"].shape)).astype(np.float32)
+    return Dataset(root=Path(f"synthetic_{res}_{n}"), layout="blender", train=views, test=[], points_xyz=points,
+                   points_rgb=np.full_like(points, 0.5), background=np.zeros(3, np.float32), color_space="linear")
+
+
+def case_setup(case: str):
+    """(dataset, TrainConfig, label) of a case name."""
+    from mi_gaussians.config import TrainConfig
+
+    if ":" in case:
+        res, n = (int(x) for x in case.split(":"))
+        cfg = TrainConfig()
+        cfg = dataclasses.replace(cfg, densify=dataclasses.replace(cfg.densify, densify_until_iter=0),
+                                  checkpoint_every=10 ** 9, eval_every=0)
+        return synthetic_dataset(res, n), cfg, f"synthetic {res}x{res}, {n:,} Gaussians"
+    from train import DATA, DATASETS
+
+    from mi_gaussians.data.dataset import load_dataset
+
+    if case not in DATASETS:
+        raise SystemExit(f"unknown case {case!r}: RES:N or one of {', '.join(DATASETS)}")
+    folder, r, bg, what = DATASETS[case]
+    if not (DATA / folder).exists():
+        return None
+    ds = load_dataset(DATA / folder, resolution=r, background=bg)
+    cfg = dataclasses.replace(TrainConfig(), checkpoint_every=10 ** 9, eval_every=0)
+    return ds, cfg, f"{case} ({what})"
+
+
+def measure(ds, cfg, freeze: bool, warmup: int, iterations: int) -> dict:
+    import drjit as dr
+
+    from mi_gaussians.optim.trainer import Trainer
+
+    cfg = dataclasses.replace(cfg, freeze=freeze,
+                              optim=dataclasses.replace(cfg.optim, iterations=warmup + 3 * iterations + 1))
+    with tempfile.TemporaryDirectory() as tmp:
+        tr = Trainer(ds, cfg, tmp, progress=False)
+
+        def run(k):
+            for _ in range(k):
+                tr.advance()
+            tr._resolve()
+            dr.sync_thread()
+
+        run(warmup)
+        syncs0 = tr.syncs
+        t0 = time.perf_counter()
+        run(iterations)
+        wall = (time.perf_counter() - t0) / iterations
+        syncs = (tr.syncs - syncs0) / iterations
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            dr.kernel_history()
+            run(iterations)
+            history = dr.kernel_history()
+            with dr.scoped_set_flag(dr.JitFlag.LaunchBlocking, True):
+                t0 = time.perf_counter()
+                run(iterations)
+                blocking = (time.perf_counter() - t0) / iterations
+                blocking_history = dr.kernel_history()
+    kernel_ms = sum(k.get("execution_time", 0.0) for k in history) / iterations
+    blocking_kernel_ms = sum(k.get("execution_time", 0.0) for k in blocking_history) / iterations
+    return {"it_s": 1.0 / wall, "ms": 1e3 * wall, "host_ms": max(0.0, 1e3 * blocking - blocking_kernel_ms),
+            "kernel_ms": kernel_ms, "kernels": len(history) / iterations, "syncs": syncs,
+            "gaussians": tr.params.n, "recordings": tr.train_step.recordings, "overflows": tr.overflows}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--variant", default="llvm_ad_rgb")
+    ap.add_argument("--cases", nargs="+", default=["200:50000", "800:300000"],
+                    help="RES:N synthetic cases and/or dataset names of benchmarks/train.py")
+    ap.add_argument("--iterations", type=int, default=30, help="measured iterations per loop (three passes)")
+    ap.add_argument("--warmup", type=int, default=10)
+    args = ap.parse_args(argv)
+
+    import mitsuba as mi
+
+    mi.set_variant(args.variant)
+    import drjit as dr
+
+    import mi_gaussians  # noqa: F401
+
+    print(f"variant {args.variant}, {dr.thread_count()} threads; {args.iterations} iterations per measurement "
+          f"after {args.warmup} of warm-up")
+    head = ("| case | loop | it/s | ms/it | host ms/it | kernel ms/it | kernels/it | syncs/it | Gaussians "
+            "| recordings | ratio |")
+    print(head)
+    print("|" + "---|" * (head.count("|") - 1))
+    for case in args.cases:
+        setup = case_setup(case)
+        if setup is None:
+            print(f"| {case} | skipped: dataset not in ../shared/data |")
+            continue
+        ds, cfg, label = setup
+        rows = {}
+        for freeze in (True, False):
+            rows[freeze] = measure(ds, cfg, freeze, args.warmup, args.iterations)
+        for freeze in (True, False):
+            r = rows[freeze]
+            ratio = f"{rows[True]['it_s'] / rows[False]['it_s']:.2f}x" if freeze else ""
+            print(f"| {label} | {'frozen' if freeze else 'traced'} | {r['it_s']:.1f} | {r['ms']:.1f} | "
+                  f"{r['host_ms']:.2f} | {r['kernel_ms']:.1f} | {r['kernels']:.0f} | {r['syncs']:.2f} | "
+                  f"{r['gaussians']:,} | {r['recordings']} | {ratio} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

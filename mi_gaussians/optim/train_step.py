@@ -1,0 +1,119 @@
+"""One training iteration as a function of its inputs, recorded once with ``dr.freeze`` and replayed.
+
+Tracing an iteration in Python (the render with its AD graph, the fused L1 + SSIM loss, the backward pass, the
+statistics and the Adam update) costs milliseconds of host time, about as much as the kernels of a small model. A
+frozen function replays the recorded kernels instead, with no Python in between, and reads nothing back, so the host
+can queue the next iteration while the device runs this one. ``dr.freeze`` records again when the structure of the
+inputs changes (a new number of Gaussians after densification, another SH degree, a new instance capacity), so a run
+holds a handful of recordings.
+
+What freezing requires, and how this module provides it:
+
+- **Every value is an input.** The per-iteration values (target image, camera, background colour, position learning
+  rate) arrive as Dr.Jit arrays in :class:`StepInputs`; the model and its Adam state as the
+  :class:`~mi_gaussians.optim.adam.GaussianAdam` PyTree; the densification statistics as the strategy's state
+  dataclass. Python values that select code (SH degree, whether statistics are updated, the capacity) are arguments,
+  so each combination has its own recording.
+- **No readback.** Binning takes a fixed ``capacity`` for its instance list instead of reading the count back
+  (:func:`~mi_gaussians.raster.binning.bin_gaussians`). Whether the instances fitted, and whether the loss is finite,
+  is a device flag ``ok``; the Adam step and the statistics update are masked by it (a masked step is no step: values,
+  moments, ``t`` and statistics unchanged), and ``ok`` also gates every later step (``valid`` is chained), so after a
+  failed step the model stays exactly as it was before it. The trainer reads the flags every few iterations; on an
+  overflow it enlarges the capacity and replays the iterations from the failed one (same views, same backgrounds), on
+  a non-finite loss it stops the run naming the iteration. The result is the same model the unfrozen loop trains.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+from ..config import RasterConfig
+from ..raster.projection import ViewParams
+from ..raster.rasterize import render
+from .adam import GaussianAdam
+from .losses import photometric_loss
+from .strategy import Strategy
+
+# Instance capacities are taken from this geometric ladder (steps of 2^(1/4), about 19 %), so that the capacity
+# changes -- and the step is recorded again -- only when the need moves by a step, while at most about a quarter of
+# the instance list is slack.
+_CAPACITY_BASE = 4096
+
+
+def capacity_for(instances: float) -> int:
+    """The smallest capacity of the ladder 4096 * 2^(k/4) (rounded up to a multiple of 256) that holds
+    ``instances``."""
+    k = 0
+    while True:
+        cap = -(-int(_CAPACITY_BASE * 2.0 ** (k / 4.0)) // 256) * 256
+        if cap >= instances:
+            return cap
+        k += 1
+
+
+@dataclass
+class StepInputs:
+    """The per-iteration Dr.Jit values of a training step (a PyTree: a frozen step takes it as an input)."""
+
+    target: "mi.TensorXf"                 # (H, W, 3) image over ``fixed_background``
+    transparency: "mi.TensorXf | None"    # (H, W, 1) 1 - alpha, for re-compositing over a random background
+    view: ViewParams
+    background: tuple                     # (r, g, b) 1-element mi.Float each
+    means_lr: "mi.Float"                  # the position learning rate of this iteration (1 element)
+
+
+def composite_target(target, transparency, background, fixed_background) -> "mi.TensorXf":
+    """``target`` (an image over ``fixed_background``) over ``background``: only pixels with ``transparency`` > 0
+    change. ``transparency`` None: the image has no alpha and is returned as it is."""
+    if transparency is None:
+        return target
+    # image = straight * a + fixed_bg * (1 - a)  ->  straight * a + bg * (1 - a)
+    delta = [b - float(f) for b, f in zip(background, fixed_background)]
+    flat = dr.concat(delta) if all(dr.is_array_v(d) for d in delta) else mi.Float(delta)
+    return target + transparency * mi.TensorXf(flat, (1, 1, 3))
+
+
+class TrainStep:
+    """A training iteration without host synchronization: render, loss, backward, statistics, masked Adam step.
+
+    ``step(params, state, inputs, valid, sh_degree, update_state, capacity)`` returns device values
+    ``(loss, ok, instances)`` (1 element each) and changes ``params`` and ``state`` in place. ``valid`` is the
+    ``ok`` of the previous step (``mi.Bool(True)`` after a synchronization). ``freeze=False`` runs the same code
+    traced every time (a reference for tests)."""
+
+    def __init__(self, strategy: Strategy, raster: RasterConfig, lambda_dssim: float, fixed_background,
+                 freeze: bool = True):
+        fixed = tuple(float(b) for b in fixed_background)
+        lam = float(lambda_dssim)
+
+        def step(params: GaussianAdam, state, inputs: StepInputs, valid, sh_degree: int, update_state: bool,
+                 capacity: int, n: int):
+            # (n, the number of Gaussians, is an argument so that a new count always makes a new recording)
+            out = render(params.gaussians, inputs.view, background=inputs.background, sh_degree=sh_degree,
+                         cfg=raster, capacity=capacity)
+            strategy.step_pre_backward(params, state, None, out)
+            target = composite_target(inputs.target, inputs.transparency, inputs.background, fixed)
+            loss = photometric_loss(out.rgb, target, lam)
+            dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+            ok = valid & out.fits & dr.isfinite(loss)
+            if update_state:
+                strategy.update_state(state, out, active=ok)
+            params.set_learning_rate("means", inputs.means_lr)
+            params.step(active=ok)
+            return loss, ok, mi.UInt32(out.n_instances)
+
+        # recordings are made when the model's size changes (densification), so many over a run: no warning
+        self._step = dr.freeze(step, limit=4, warn_after=1 << 30) if freeze else step
+        self.frozen = freeze
+
+    @property
+    def recordings(self) -> int:
+        """How many times the step was recorded (0 when not frozen)."""
+        return self._step.n_recordings if self.frozen else 0
+
+    def __call__(self, params: GaussianAdam, state, inputs: StepInputs, valid, sh_degree: int, update_state: bool,
+                 capacity: int):
+        return self._step(params, state, inputs, valid, int(sh_degree), bool(update_state), int(capacity), params.n)

@@ -1,0 +1,156 @@
+"""The frozen training step (mi_gaussians.optim.train_step) and the loop around it: fixed-capacity binning equals the
+exact binning, a masked Adam step is no step, frozen training gives the model traced training gives (bit for bit on
+one thread, densification and instance-capacity overflows included), and replays compile and record nothing new.
+Every test runs on the variant of ``pytest --variant``."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from mi_gaussians.optim.adam import GaussianAdam
+from test_adam import EXTENT, loss_and_backward, make_gaussians
+from test_train import load, scene, small_config  # noqa: F401  (scene is a fixture)
+
+
+@pytest.fixture
+def one_thread():
+    """Dr.Jit on one thread: the order of atomic additions, hence every bit of a run, is then reproducible."""
+    before = dr.thread_count()
+    dr.set_thread_count(1)
+    yield
+    dr.set_thread_count(before)
+
+
+def test_capacity_binning_equals_exact_binning():
+    from mi_gaussians.raster.binning import bin_gaussians
+
+    rng = np.random.default_rng(3)
+    n, tiles_x, tiles_y = 400, 7, 5
+    x0, y0 = rng.integers(0, tiles_x, n), rng.integers(0, tiles_y, n)
+    x1 = np.minimum(x0 + rng.integers(0, 3, n), tiles_x - 1)
+    y1 = np.minimum(y0 + rng.integers(0, 3, n), tiles_y - 1)
+    culled = rng.random(n) < 0.2
+    count = np.where(culled, 0, (x1 - x0 + 1) * (y1 - y0 + 1)).astype(np.uint32)
+    depth = mi.Float(np.round(rng.uniform(1, 5, n), 1).astype(np.float32))    # many equal depths: stability
+    rect = tuple(mi.Int32(a.astype(np.int32)) for a in (x0, y0, x1, y1))
+    total = int(count.sum())
+
+    exact = bin_gaussians(depth, rect, mi.UInt32(count), tiles_x, tiles_y)
+    assert exact.n_instances == total
+    for capacity in (total, total + 1, 3 * total):
+        b = bin_gaussians(depth, rect, mi.UInt32(count), tiles_x, tiles_y, capacity=capacity)
+        assert bool(b.fits[0]) and int(b.n_instances[0]) == total
+        np.testing.assert_array_equal(np.array(b.tile_start), np.array(exact.tile_start))
+        np.testing.assert_array_equal(np.array(b.gaussian)[:total], np.array(exact.gaussian))
+    short = bin_gaussians(depth, rect, mi.UInt32(count), tiles_x, tiles_y, capacity=total - 1)
+    assert not bool(short.fits[0]) and int(short.n_instances[0]) == total
+
+
+def test_masked_adam_step_is_no_step():
+    """``step(active=False)`` changes no value, moment or step count (Dr.Jit's own mask lets t count on);
+    ``step(active=True)`` is ``step()``."""
+    from mi_gaussians.config import OptimConfig
+
+    a = GaussianAdam(make_gaussians(), OptimConfig(), EXTENT)
+    b = GaussianAdam(make_gaussians(), OptimConfig(), EXTENT)
+    for p in (a, b):
+        loss_and_backward(p.gaussians)
+        p.step()
+        loss_and_backward(p.gaussians, salt=1)
+    before = {k: a.moments(k) for k in a.keys()}
+    values = a.gaussians.numpy()
+    a.step(active=dr.opaque(mi.Bool, False))
+    for k in a.keys():
+        t, m, v = a.moments(k)
+        assert t == before[k][0] == 1
+        np.testing.assert_array_equal(m, before[k][1])
+        np.testing.assert_array_equal(v, before[k][2])
+        np.testing.assert_array_equal(a.gaussians.numpy()[k], values[k])
+    loss_and_backward(a.gaussians, salt=1)
+    a.step(active=dr.opaque(mi.Bool, True))
+    b.step()
+    for k in a.keys():
+        np.testing.assert_array_equal(a.gaussians.numpy()[k], b.gaussians.numpy()[k], err_msg=k)
+        assert a.moments(k)[0] == b.moments(k)[0] == 2
+
+
+def _train(scene, cfg, steps, capacity=None):  # noqa: F811
+    from mi_gaussians.optim.trainer import Trainer
+
+    import tempfile
+
+    tr = Trainer(load(scene, cfg), cfg, tempfile.mkdtemp(), progress=False)
+    if capacity is not None:
+        def tiny(instances, n_before):
+            tr.capacity, tr._peak = capacity, 0
+        tr._set_capacity_after_traced = tiny
+    while tr.step < steps or tr._pending:
+        if tr.step < steps:
+            tr.advance()
+        else:
+            tr._resolve()
+    return tr
+
+
+@pytest.mark.parametrize("capacity", [None, 512])
+def test_frozen_training_equals_traced_training(scene, one_thread, capacity):  # noqa: F811
+    """130 iterations with densifications at 100 and 150... (the config's), an opacity reset, SH degree rising at 100:
+    the frozen loop ends with the traced loop's model, moments, statistics and losses, bit for bit. With a capacity of
+    512 instances after every traced iteration, frozen steps overflow, are masked and replayed with a larger one."""
+    steps = 130
+    cfg = small_config(300)
+    frozen = _train(scene, cfg, steps, capacity)
+    traced = _train(scene, dataclasses.replace(cfg, freeze=False), steps)
+    assert frozen.train_step.recordings >= 1 and traced.train_step.recordings == 0
+    assert (frozen.overflows > 0) == (capacity is not None)
+    assert frozen.step == traced.step == steps and frozen.params.n == traced.params.n
+    assert frozen.history.iteration == list(range(1, steps + 1))
+    assert frozen.history.loss == traced.history.loss
+    for k, v in traced.gaussians.numpy().items():
+        np.testing.assert_array_equal(frozen.gaussians.numpy()[k], v, err_msg=k)
+    mf, mt = frozen.params.export_moments(), traced.params.export_moments()
+    for k in mt:
+        np.testing.assert_array_equal(mf[k], mt[k], err_msg=k)
+    (sf, _), (st, _) = (x.strategy.export_state(x.strategy_state) for x in (frozen, traced))
+    for k in st:
+        np.testing.assert_array_equal(sf[k], st[k], err_msg=k)
+    assert frozen.sampler.state() == traced.sampler.state()
+
+
+def test_replays_record_and_compile_nothing_new(scene):  # noqa: F811
+    """Without densification, after a warm-up every training view (other cameras, targets, random backgrounds,
+    instance counts) replays the same recording and launches no kernel that is not compiled yet."""
+    import gc
+
+    cfg = small_config(1000)
+    cfg = dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, sh_increase_interval=10_000,
+                                                             random_background=True),
+                              densify=dataclasses.replace(cfg.densify, densify_from_iter=10_000,
+                                                          densify_until_iter=10_000))
+    gc.collect()
+    gc.disable()
+    # (the flag is set first: JIT flags are part of a recording's key)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        tr = _train(scene, cfg, 6)
+        recordings = tr.train_step.recordings
+        assert 1 <= recordings <= 3
+        dr.kernel_history()
+        for _ in range(2 * len(tr.ds.train)):
+            tr.advance()
+        tr._resolve()
+        history = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+        gc.enable()
+    assert tr.train_step.recordings == recordings
+    assert tr.syncs < 2 * len(tr.ds.train) / 5
+    jit = [k for k in history if k["type"] == dr.KernelType.JIT]
+    assert len(jit) > 20
+    missed = [(k["size"], k["hash"]) for k in jit if not k["cache_hit"]]
+    assert not missed, f"{len(missed)} of {len(jit)} kernels compiled anew: {missed[:5]}"
