@@ -11,6 +11,11 @@ Outputs (all written atomically into ``out_dir``)::
     metrics.json                 PSNR / SSIM (LPIPS when available) per test view and mean, Gaussians, time
     curves.png, history.json     loss, test PSNR and number of Gaussians against the iteration
 
+Iterations are frozen (:mod:`.train_step`: recorded once with ``dr.freeze``, replayed, nothing read back) and queued;
+:meth:`Trainer._resolve` reads their losses and flags every :data:`SYNC_EVERY` iterations and before evaluations,
+checkpoints and refinements. The first iteration and the strategy's refinements run traced (:meth:`Trainer._iteration`);
+``TrainConfig.freeze = False`` traces every iteration.
+
 A non-finite loss or parameter stops the run with :class:`TrainingDiverged`; the last good checkpoint stays.
 """
 
