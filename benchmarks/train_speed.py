@@ -3,13 +3,18 @@
 
     python benchmarks/train_speed.py                                  # synthetic 200x200/50k and 800x800/300k
     python benchmarks/train_speed.py --cases 200:50000 --iterations 40
-    python benchmarks/train_speed.py --cases mi_objects_colmap --iterations 2000   # a real run's first iterations
+    python benchmarks/train_speed.py --cases mi_objects_colmap --iterations 100 --rounds 5   # a real run's start
     python benchmarks/train_speed.py --variant cuda_ad_rgb
 
 Per case and loop it prints:
-- iterations/s: wall clock over the measured iterations (after a warm-up that compiles and records);
-- host ms/it: time the host spends tracing, recording or replaying, and launching: the same iterations run with
-  ``JitFlag.LaunchBlocking`` (each kernel finishes before the host goes on), minus the kernels' own time;
+- iterations/s: wall clock over ``--rounds`` passes of ``--iterations`` iterations (after a warm-up that compiles
+  and records), the two loops taking turns pass by pass, so that both see the same stretch of the schedule and the
+  same drift of the machine's speed;
+- host ms/it: time the host spends tracing, recording or replaying, and launching: each iteration run once more with
+  ``JitFlag.LaunchBlocking`` (each kernel finishes before the host goes on), its wall time minus its kernels' own
+  time; the median over the iterations (a 2-core VM stalls now and then for milliseconds, which a mean over a few
+  dozen iterations would count as host time), and the mean beside it (it also carries the queued iterations' read
+  every ``trainer.SYNC_EVERY`` iterations);
 - kernel ms/it and kernels/it: ``dr.kernel_history()`` over the measured iterations (every entry: compiled kernels,
   sorts, reductions, memsets, copies);
 - syncs/it: times the training loop waited for the device to read values back (a traced iteration: the binning's
@@ -28,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import statistics
 import sys
 import tempfile
 import time
@@ -99,42 +105,58 @@ def case_setup(case: str):
     return ds, cfg, f"{case} ({what})"
 
 
-def measure(ds, cfg, freeze: bool, warmup: int, iterations: int) -> dict:
+def measure(ds, cfg, warmup: int, iterations: int, rounds: int) -> dict:
+    """Both loops on the same dataset and schedule, interleaved: ``rounds`` timed passes of ``iterations`` each,
+    frozen and traced taking turns (a VM's speed drifts over minutes: timing one loop after the other would credit
+    the drift to the second), then a kernel-history pass and a blocking pass of each. Returns {freeze: row}."""
     import drjit as dr
 
     from mi_gaussians.optim.trainer import Trainer
 
-    cfg = dataclasses.replace(cfg, freeze=freeze,
-                              optim=dataclasses.replace(cfg.optim, iterations=warmup + 3 * iterations + 1))
+    total = warmup + (rounds + 2) * iterations + 2
     with tempfile.TemporaryDirectory() as tmp:
-        tr = Trainer(ds, cfg, tmp, progress=False)
+        trainers = {freeze: Trainer(ds, dataclasses.replace(cfg, freeze=freeze, optim=dataclasses.replace(
+            cfg.optim, iterations=total)), Path(tmp) / str(freeze), progress=False) for freeze in (True, False)}
 
-        def run(k):
+        def run(tr, k):
             for _ in range(k):
                 tr.advance()
             tr._resolve()
             dr.sync_thread()
 
-        run(warmup)
-        syncs0 = tr.syncs
-        t0 = time.perf_counter()
-        run(iterations)
-        wall = (time.perf_counter() - t0) / iterations
-        syncs = (tr.syncs - syncs0) / iterations
-        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
-            dr.kernel_history()
-            run(iterations)
-            history = dr.kernel_history()
-            with dr.scoped_set_flag(dr.JitFlag.LaunchBlocking, True):
+        rows = {freeze: {"seconds": 0.0, "syncs": 0} for freeze in trainers}
+        for tr in trainers.values():
+            run(tr, warmup)
+        for _ in range(rounds):
+            for freeze, tr in trainers.items():
+                syncs0 = tr.syncs
                 t0 = time.perf_counter()
-                run(iterations)
-                blocking = (time.perf_counter() - t0) / iterations
-                blocking_history = dr.kernel_history()
-    kernel_ms = sum(k.get("execution_time", 0.0) for k in history) / iterations
-    blocking_kernel_ms = sum(k.get("execution_time", 0.0) for k in blocking_history) / iterations
-    return {"it_s": 1.0 / wall, "ms": 1e3 * wall, "host_ms": max(0.0, 1e3 * blocking - blocking_kernel_ms),
-            "kernel_ms": kernel_ms, "kernels": len(history) / iterations, "syncs": syncs,
-            "gaussians": tr.params.n, "recordings": tr.train_step.recordings, "overflows": tr.overflows}
+                run(tr, iterations)
+                rows[freeze]["seconds"] += time.perf_counter() - t0
+                rows[freeze]["syncs"] += tr.syncs - syncs0
+        for freeze, tr in trainers.items():
+            row = rows[freeze]
+            with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+                dr.kernel_history()
+                run(tr, iterations)
+                history = dr.kernel_history()
+                with dr.scoped_set_flag(dr.JitFlag.LaunchBlocking, True):
+                    run(tr, 1)                  # (the blocking flag is part of a recording's key: record it first)
+                    dr.kernel_history()
+                    gaps = []
+                    for _ in range(iterations):
+                        t0 = time.perf_counter()
+                        tr.advance()
+                        wall_ms = 1e3 * (time.perf_counter() - t0)
+                        gaps.append(wall_ms - sum(k.get("execution_time", 0.0) for k in dr.kernel_history()))
+                    run(tr, 0)
+            measured = rounds * iterations
+            row.update(it_s=measured / row["seconds"], ms=1e3 * row["seconds"] / measured,
+                       host_ms=max(0.0, statistics.median(gaps)), host_mean_ms=max(0.0, statistics.fmean(gaps)),
+                       kernel_ms=sum(k.get("execution_time", 0.0) for k in history) / iterations,
+                       kernels=len(history) / iterations, syncs=row["syncs"] / measured, gaussians=tr.params.n,
+                       recordings=tr.train_step.recordings, overflows=tr.overflows)
+    return rows
 
 
 def main(argv=None) -> int:
@@ -142,7 +164,8 @@ def main(argv=None) -> int:
     ap.add_argument("--variant", default="llvm_ad_rgb")
     ap.add_argument("--cases", nargs="+", default=["200:50000", "800:300000"],
                     help="RES:N synthetic cases and/or dataset names of benchmarks/train.py")
-    ap.add_argument("--iterations", type=int, default=30, help="measured iterations per loop (three passes)")
+    ap.add_argument("--iterations", type=int, default=30, help="iterations per pass")
+    ap.add_argument("--rounds", type=int, default=3, help="timed passes per loop, the loops taking turns")
     ap.add_argument("--warmup", type=int, default=10)
     args = ap.parse_args(argv)
 
@@ -153,9 +176,9 @@ def main(argv=None) -> int:
 
     import mi_gaussians  # noqa: F401
 
-    print(f"variant {args.variant}, {dr.thread_count()} threads; {args.iterations} iterations per measurement "
-          f"after {args.warmup} of warm-up")
-    head = ("| case | loop | it/s | ms/it | host ms/it | kernel ms/it | kernels/it | syncs/it | Gaussians "
+    print(f"variant {args.variant}, {dr.thread_count()} threads; {args.rounds} passes of {args.iterations} "
+          f"iterations per loop, taking turns, after {args.warmup} of warm-up")
+    head = ("| case | loop | it/s | ms/it | host ms/it | host mean | kernel ms/it | kernels/it | syncs/it | Gaussians "
             "| recordings | ratio |")
     print(head)
     print("|" + "---|" * (head.count("|") - 1))
@@ -165,14 +188,12 @@ def main(argv=None) -> int:
             print(f"| {case} | skipped: dataset not in ../shared/data |")
             continue
         ds, cfg, label = setup
-        rows = {}
-        for freeze in (True, False):
-            rows[freeze] = measure(ds, cfg, freeze, args.warmup, args.iterations)
+        rows = measure(ds, cfg, args.warmup, args.iterations, args.rounds)
         for freeze in (True, False):
             r = rows[freeze]
             ratio = f"{rows[True]['it_s'] / rows[False]['it_s']:.2f}x" if freeze else ""
             print(f"| {label} | {'frozen' if freeze else 'traced'} | {r['it_s']:.1f} | {r['ms']:.1f} | "
-                  f"{r['host_ms']:.2f} | {r['kernel_ms']:.1f} | {r['kernels']:.0f} | {r['syncs']:.2f} | "
+                  f"{r['host_ms']:.2f} | {r['host_mean_ms']:.2f} | {r['kernel_ms']:.1f} | {r['kernels']:.0f} | {r['syncs']:.2f} | "
                   f"{r['gaussians']:,} | {r['recordings']} | {ratio} |", flush=True)
     return 0
 
