@@ -8,7 +8,9 @@ exit with status 2; nothing is half-written (all outputs are written atomically)
 from __future__ import annotations
 
 import argparse
+import errno
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -19,6 +21,11 @@ class InputError(Exception):
     """A problem with the user's input, reported as one line."""
 
 
+# The rasterizer is Dr.Jit code with a hand-written backward pass and RGB colours: a JIT variant with automatic
+# differentiation and RGB colour
+SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
+
+
 def _default_variant() -> str:
     import drjit as dr
 
@@ -26,12 +33,75 @@ def _default_variant() -> str:
 
 
 def _set_variant(name: str | None) -> None:
+    import drjit as dr
     import mitsuba as mi
 
     variant = name or _default_variant()
-    if variant not in mi.variants():
-        raise InputError(f"unknown Mitsuba variant {variant!r} (available: {', '.join(mi.variants())})")
+    if variant not in SUPPORTED_VARIANTS:
+        known = "a Mitsuba variant mi-gs cannot use" if variant in mi.variants() else "not a Mitsuba variant"
+        raise InputError(f"--variant {variant}: {known} (mi-gs runs on {' or '.join(SUPPORTED_VARIANTS)})")
+    if variant.startswith("cuda") and not dr.has_backend(dr.JitBackend.CUDA):
+        raise InputError(f"--variant {variant}: no CUDA device or driver is available on this machine "
+                         "(use llvm_ad_rgb)")
     mi.set_variant(variant)
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    value = _integer(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    value = _integer(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text}")
+    return value
+
+
+def _integer(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+
+
+def finite_float(text: str) -> float:
+    """argparse type: a finite number (no nan or inf)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    value = finite_float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text}")
+    return value
+
+
+def field_of_view(text: str) -> float:
+    """argparse type: a field of view in degrees, strictly between 0 and 180."""
+    value = finite_float(text)
+    if not 0 < value < 180:
+        raise argparse.ArgumentTypeError(f"expected degrees between 0 and 180, got {text}")
+    return value
+
+
+def sh_degree(text: str) -> int:
+    """argparse type: a spherical-harmonics degree 0..3."""
+    value = _integer(text)
+    if not 0 <= value <= 3:
+        raise argparse.ArgumentTypeError(f"expected an SH degree 0, 1, 2 or 3, got {text}")
+    return value
 
 
 def _background(values) -> tuple[float, float, float]:
@@ -73,15 +143,16 @@ def _scene_info(path: Path, defines) -> dict:
 
 
 def _dataset_info(path: Path, resolution: int) -> dict:
-    from .data.dataset import load_dataset
+    from .data.dataset import load_dataset, unreadable_images
 
     ds = load_dataset(path, resolution=resolution)
+    unreadable = unreadable_images(ds.views, progress=sys.stderr.isatty())
     cam = ds.train[0].camera
     return {"dataset": str(path), "layout": ds.layout, "train_views": len(ds.train), "test_views": len(ds.test),
             "image_size": [cam.width, cam.height], "fx": round(cam.fx, 4), "fy": round(cam.fy, 4),
             "cx": round(cam.cx, 4), "cy": round(cam.cy, 4), "color_space": ds.color_space,
             "points": 0 if ds.points_xyz is None else int(ds.points_xyz.shape[0]),
-            "extent": round(ds.extent, 6)}
+            "extent": round(ds.extent, 6), "images_checked": len(ds.views), "unreadable_images": unreadable}
 
 
 def cmd_info(args) -> int:
@@ -95,6 +166,11 @@ def cmd_info(args) -> int:
     else:
         info = _dataset_info(path, args.resolution)
     print(json.dumps(info, indent=2))
+    bad = info.get("unreadable_images")
+    if bad:
+        sys.stdout.flush()
+        raise InputError(f"{path}: {len(bad)} of {info['images_checked']} images cannot be read (listed above under "
+                         f"unreadable_images), e.g. {bad[0]}")
     return 0
 
 
@@ -119,9 +195,12 @@ def _render_gaussians_views(args, views, color_space: str, out_paths) -> None:
 
 
 def _outputs_for(path: Path) -> list[Path]:
+    from .io_utils import check_output_file
+
     ext = path.suffix.lower()
     if ext not in (".exr", ".png"):
         raise InputError(f"{path}: unsupported output format {ext or '(none)'} (use .exr or .png)")
+    check_output_file(path)
     return [path]
 
 
@@ -133,13 +212,14 @@ def _render_scene_file(args, src: Path, out: Path) -> int:
     from .data.scene_file import load_file
     from .imwrite import write_image
 
+    outputs = _outputs_for(out)
     scene = load_file(src, args.define)
     if not scene.sensors():
         raise InputError(f"{src}: the scene has no sensor")
     if args.sensor >= len(scene.sensors()):
         raise InputError(f"{src}: sensor index {args.sensor} out of range ({len(scene.sensors())} sensors)")
     img = np.array(mi.render(scene, sensor=args.sensor, spp=args.spp or 0), dtype=np.float32)
-    for p in _outputs_for(out):
+    for p in outputs:
         write_image(p, img[..., :4] if img.shape[-1] >= 4 else img[..., :3], "linear")
         print(p)
     return 0
@@ -147,14 +227,18 @@ def _render_scene_file(args, src: Path, out: Path) -> int:
 
 def _render_dataset_views(args, out: Path) -> int:
     """A .ply rendered from the views of a dataset folder into the folder ``out`` (EXR and PNG per view)."""
+    from .config import DataConfig
     from .data.dataset import load_dataset
+    from .io_utils import check_output_folder
 
-    ds = load_dataset(args.dataset, resolution=args.resolution, background=_background(args.background))
+    ds = load_dataset(args.dataset, resolution=args.resolution or DataConfig().resolution,
+                      background=_background(args.background))
     views = {"train": ds.train, "test": ds.test, "all": ds.views}[args.split]
     if not views:
         raise InputError(f"{args.dataset}: the {args.split} split is empty")
     if out.suffix:
         raise InputError(f"{out}: with --dataset, -o names an output folder")
+    check_output_folder(out)
     out.mkdir(parents=True, exist_ok=True)
     paths = [[out / f"{Path(v.name).stem}.exr", out / f"{Path(v.name).stem}.png"] for v in views]
     _render_gaussians_views(args, [(v.name, v.camera) for v in views], ds.color_space, paths)
@@ -175,10 +259,14 @@ def cmd_render(args) -> int:
         raise InputError("give exactly one of --camera CAM.json or --dataset DIR")
     if args.dataset is not None:
         return _render_dataset_views(args, out)
+    if args.resolution is not None:
+        raise InputError("-r/--resolution applies to --dataset only (with --camera, the camera JSON gives the "
+                         "image size)")
     from .data.camera import Camera
 
+    outputs = _outputs_for(out)
     cam = Camera.from_json(args.camera)
-    _render_gaussians_views(args, [(cam.name or "view", cam)], args.color_space, [_outputs_for(out)])
+    _render_gaussians_views(args, [(cam.name or "view", cam)], args.color_space, [outputs])
     print(out)
     return 0
 
@@ -247,10 +335,67 @@ def _train_config(args, scene_file: bool = False):
                        checkpoint_every=args.checkpoint_every, eval_every=args.eval_every, save_iterations=save)
 
 
+# What each optimize option sets in the TrainConfig: on --resume, an option given again must agree with the run
+# (checkpoint_every, eval_every and cache only change how the run is carried out, and iterations may extend it)
+_RUN_FIELDS = {
+    "resolution": ("data.resolution", "scene.resolution"), "background": ("data.background",),
+    "white_background": ("data.background",), "random_background": ("optim.random_background",),
+    "sh_degree": ("optim.sh_degree",), "test_every": ("data.test_every",), "seed": ("seed", "data.seed"),
+    "random_points": ("data.random_points",), "rig": ("scene.rig",), "views": ("scene.views",),
+    "test_views": ("scene.test_views",), "radius": ("scene.radius",), "fov": ("scene.fov",), "up": ("scene.up",),
+    "spp": ("scene.spp",), "linear": ("scene.linear",), "init": ("scene.init",),
+    "init_points": ("scene.init_points",), "define": ("scene.defines",),
+}
+
+
+def _field(cfg, dotted: str):
+    for name in dotted.split("."):
+        cfg = getattr(cfg, name)
+    return cfg
+
+
+def _resumed_config(args, src: Path, out: Path, saved: dict):
+    """The saved run's TrainConfig, checked against the options given again on the command line; ``--iterations``
+    may move the end of the run (the schedules stay the run's), ``--checkpoint-every`` / ``--eval-every`` apply."""
+    import dataclasses
+
+    from . import run_folder
+
+    cfg = run_folder.saved_config(saved, out)
+    given = _train_config(args, scene_file=_is_scene_file(src))
+    differ = []
+    for option in sorted(args.explicit & set(_RUN_FIELDS)):
+        for name in _RUN_FIELDS[option]:
+            if _field(cfg, name) != _field(given, name):
+                differ.append(f"--{option.replace('_', '-')} gives {name} = {_field(given, name)!r}, the run has "
+                              f"{_field(cfg, name)!r}")
+    if differ:
+        raise InputError(f"--resume: {out / run_folder.CONFIG}: the options differ from the run's settings: "
+                         f"{'; '.join(differ)} (resume without them, or start a new run)")
+    if "iterations" in args.explicit:
+        cfg = dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, iterations=args.iterations))
+    for option in ("checkpoint_every", "eval_every"):
+        if option in args.explicit:
+            cfg = dataclasses.replace(cfg, **{option: getattr(args, option)})
+    return cfg
+
+
+def _check_resumed_dataset(src: Path, out: Path, saved: dict, fingerprint: str | None) -> None:
+    """A resumed run trains on the folder it started on, with the same content."""
+    from . import run_folder
+
+    if Path(saved["dataset"]) != src.resolve():
+        raise InputError(f"--resume: the run in {out} was trained on {saved['dataset']}, not on {src.resolve()} "
+                         f"(recorded in {out / run_folder.CONFIG})")
+    recorded = saved.get("dataset_fingerprint")
+    if fingerprint is not None and recorded is not None and recorded != fingerprint:
+        raise InputError(f"--resume: {src}: the dataset changed since the run in {out} started (its images, "
+                         "cameras or points differ); start a new run (--overwrite or another folder)")
+
+
 def _optimize_config(args, src: Path, out: Path):
     """(TrainConfig, the saved record of the run being resumed or None); nothing is written."""
     from . import run_folder
-    from .config import TrainConfig
 
     if args.resume and args.overwrite:
         raise InputError("give at most one of --resume and --overwrite")
@@ -258,7 +403,7 @@ def _optimize_config(args, src: Path, out: Path):
         raise InputError("--set cannot change a run being resumed (its settings are in OUTDIR/config.json)")
     if args.resume:
         saved = run_folder.read_saved(out, "nothing to resume (no config.json in the output folder)")
-        return TrainConfig.from_dict(saved["train"]), saved
+        return _resumed_config(args, src, out, saved), saved
     run_folder.check_new_run(out, args.overwrite)
     cfg = _train_config(args, scene_file=_is_scene_file(src))
     try:
@@ -269,21 +414,49 @@ def _optimize_config(args, src: Path, out: Path):
 
 def cmd_optimize(args) -> int:
     from . import run_folder
-    from .optim.trainer import Trainer, TrainingDiverged
+    from .io_utils import check_output_folder
 
     out = Path(args.output)
     src = Path(args.scene)
     if not src.exists():
         raise InputError(f"{src}: not found")
+    check_output_folder(out)
     cfg, saved = _optimize_config(args, src, out)
+    created = not out.exists()
+    lock = run_folder.RunLock(out)
+    lock.acquire()                                # before anything is written into the folder
+    try:
+        run_folder.remove_temporary_files(out)
+        return _optimize_locked(args, src, out, cfg, saved)
+    except BaseException:
+        if created:                               # (a run refused before it wrote anything leaves no folder)
+            lock.release()
+            run_folder.remove_if_only_lock(out)
+        raise
+    finally:
+        lock.release()
+
+
+def _optimize_locked(args, src: Path, out: Path, cfg, saved) -> int:
+    from . import run_folder
+    from .data.dataset import check_trainable_size, fingerprint, verify_images
+    from .optim.trainer import Trainer, TrainingDiverged
+
     cache = args.cache or run_folder.saved_cache(saved, out)
-    # everything is checked (and references rendered) before an earlier run is removed
+    # everything is checked (references rendered, every image decoded) before an earlier run is removed
     ds = _load_input(src, cfg, out, cache=cache, progress=not args.quiet, expect_key=run_folder.saved_key(saved))
+    check_trainable_size(ds)
+    record = {}
+    if ds.layout != "mitsuba":                    # (a scene file's references carry their own key)
+        record["dataset_fingerprint"] = fingerprint(ds)
+    if saved is not None:
+        _check_resumed_dataset(src, out, saved, record.get("dataset_fingerprint"))
+    verify_images(ds.test, progress=not args.quiet)
+    trainer = Trainer(ds, cfg, out, progress=not args.quiet)     # (decodes the training images)
     if args.overwrite:
         run_folder.clear_run(out)
-    trainer = Trainer(ds, cfg, out, progress=not args.quiet)
     try:
-        metrics = trainer.run(resume=args.resume)
+        metrics = trainer.run(resume=args.resume, record=record)
     except TrainingDiverged as e:
         print(f"mi-gs: error: {e}", file=sys.stderr)
         return 3
@@ -385,7 +558,8 @@ def _add_info(sub) -> None:
 
     s = sub.add_parser("info", help="summarize a 3DGS .ply, a dataset folder or a Mitsuba scene .xml")
     s.add_argument("path")
-    s.add_argument("-r", "--resolution", type=int, default=DataConfig().resolution, help="dataset resolution divisor")
+    s.add_argument("-r", "--resolution", type=positive_int, default=DataConfig().resolution,
+                   help="dataset resolution divisor")
     _add_define(s, "set a scene parameter (scene .xml only), as mitsuba -D; repeatable")
     s.set_defaults(func=cmd_info)
 
@@ -399,14 +573,16 @@ def _add_render(sub) -> None:
     s.add_argument("--dataset", help="dataset folder whose views to render")
     s.add_argument("--split", choices=("train", "test", "all"), default="test")
     s.add_argument("-o", "--output", required=True, help="output .exr/.png file, or folder with --dataset")
-    s.add_argument("-r", "--resolution", type=int, default=DataConfig().resolution)
-    s.add_argument("--background", type=float, nargs="+", default=None, help="background colour (1 or 3 values)")
-    s.add_argument("--sh-degree", type=int, default=None, help="active SH degree (default: the model's)")
+    s.add_argument("-r", "--resolution", type=positive_int, default=None,
+                   help=f"with --dataset: divide its image size by this (default {DataConfig().resolution})")
+    s.add_argument("--background", type=finite_float, nargs="+", default=None,
+                   help="background colour (1 or 3 values)")
+    s.add_argument("--sh-degree", type=sh_degree, default=None, help="active SH degree (default: the model's)")
     s.add_argument("--color-space", choices=("srgb", "linear"), default="srgb",
                    help="what the model's colours are (3DGS models trained on photos: srgb)")
     s.add_argument("--alpha", action="store_true", help="write an alpha channel")
-    s.add_argument("--spp", type=int, default=None, help="samples per pixel (scene .xml only)")
-    s.add_argument("--sensor", type=int, default=0, help="sensor index (scene .xml only)")
+    s.add_argument("--spp", type=positive_int, default=None, help="samples per pixel (scene .xml only)")
+    s.add_argument("--sensor", type=non_negative_int, default=0, help="sensor index (scene .xml only)")
     _add_define(s, "set a scene parameter (scene .xml only), as mitsuba -D; repeatable")
     s.set_defaults(func=cmd_render)
 
@@ -421,25 +597,25 @@ def _add_scene_options(s) -> None:
     g.add_argument("--rig", choices=RIGS, default=None,
                    help=f"cameras: the scene's sensors, or generated around its bounding box (default {sc.rig}: the "
                         "sensors if the scene declares several, else hemisphere)")
-    g.add_argument("--views", type=int, default=None,
+    g.add_argument("--views", type=positive_int, default=None,
                    help=f"generated training cameras (default {sc.views}; --seed also picks the rig, so another seed "
                         "renders new references)")
-    g.add_argument("--test-views", type=int, default=None,
+    g.add_argument("--test-views", type=non_negative_int, default=None,
                    help=f"generated held-out cameras (default {sc.test_views})")
-    g.add_argument("--radius", type=float, default=None,
+    g.add_argument("--radius", type=positive_float, default=None,
                    help="rig radius (default: the bounding sphere fills the view)")
-    g.add_argument("--fov", type=float, default=None, help="horizontal field of view in degrees (default: the "
+    g.add_argument("--fov", type=field_of_view, default=None, help="horizontal field of view in degrees (default: the "
                                                            f"sensor's, else {FALLBACK_FOV:g})")
-    g.add_argument("--up", type=float, nargs=3, default=None,
+    g.add_argument("--up", type=finite_float, nargs=3, default=None,
                    help=f"world up (default: the sensor's, else {' '.join(f'{u:g}' for u in FALLBACK_UP)})")
-    g.add_argument("--spp", type=int, default=None, help="reference samples per pixel (default: the sensor's, "
+    g.add_argument("--spp", type=positive_int, default=None, help="reference samples per pixel (default: the sensor's, "
                                                          f"else {FALLBACK_SPP})")
     g.add_argument("--linear", action="store_true",
                    help="train on linear radiance (default: on the sRGB-encoded references)")
     g.add_argument("--init", choices=INIT_METHODS, default=None,
                    help=f"initial points (default {sc.init}): sampled on the shapes and coloured by the references, "
                         "random in the bounding box, or structure from motion")
-    g.add_argument("--init-points", type=int, default=None,
+    g.add_argument("--init-points", type=positive_int, default=None,
                    help=f"initial points for shapes/random (default {sc.init_points})")
     g.add_argument("--cache", default=None, help="folder for the cached references (default OUTDIR/references)")
     _add_define(g, "set a scene parameter (<default name=\"KEY\">), as mitsuba -D; repeatable")
@@ -454,25 +630,26 @@ def _add_optimize(sub) -> None:
                                         "path-traced references of a Mitsuba scene .xml")
     s.add_argument("scene", help="scene folder, or Mitsuba scene file (.xml)")
     s.add_argument("-o", "--output", required=True, help="output folder")
-    s.add_argument("--iterations", type=int, default=None, help=f"default {o.iterations} (the paper's)")
-    s.add_argument("-r", "--resolution", type=int, nargs="+", default=None,
+    s.add_argument("--iterations", type=positive_int, default=None, help=f"default {o.iterations} (the paper's)")
+    s.add_argument("-r", "--resolution", type=positive_int, nargs="+", default=None,
                    help=f"scene folder: divide the image size by this (default {d.resolution}); scene .xml: the film "
                         f"size of generated cameras, W [H] (default: the scene's sensor's, else "
                         f"{FALLBACK_RESOLUTION[0]})")
     s.add_argument("--white-background", action="store_true", help="composite RGBA images over white")
-    s.add_argument("--background", type=float, nargs="+", default=None, help="background colour (1 or 3 values)")
+    s.add_argument("--background", type=finite_float, nargs="+", default=None,
+                   help="background colour (1 or 3 values)")
     s.add_argument("--random-background", action="store_true", help="random background colour per iteration")
-    s.add_argument("--sh-degree", type=int, default=None, help=f"maximum SH degree (default {o.sh_degree})")
-    s.add_argument("--test-every", type=int, default=d.test_every,
+    s.add_argument("--sh-degree", type=sh_degree, default=None, help=f"maximum SH degree (default {o.sh_degree})")
+    s.add_argument("--test-every", type=non_negative_int, default=d.test_every,
                    help="hold out every N-th image (COLMAP/ngp; 0: none)")
-    s.add_argument("--random-points", type=int, default=None,
+    s.add_argument("--random-points", type=positive_int, default=None,
                    help=f"initial random points for layouts without SfM points (default {d.random_points})")
-    s.add_argument("--seed", type=int, default=t.seed)
+    s.add_argument("--seed", type=non_negative_int, default=t.seed)
     s.add_argument("--set", action="append", default=None, metavar="SECTION.FIELD=VALUE", dest="settings",
                    help="set any field of the training configuration (mi_gaussians/config.py), applied after the "
                         "other options, e.g. --set densify.min_opacity=0.1 --set optim.feature_lr=0.005; repeatable")
-    s.add_argument("--checkpoint-every", type=int, default=t.checkpoint_every)
-    s.add_argument("--eval-every", type=int, default=t.eval_every, help="test PSNR for the curves every N iterations")
+    s.add_argument("--checkpoint-every", type=positive_int, default=t.checkpoint_every)
+    s.add_argument("--eval-every", type=non_negative_int, default=t.eval_every, help="test PSNR for the curves every N iterations")
     s.add_argument("--resume", action="store_true", help="continue the run saved in the output folder")
     s.add_argument("--overwrite", action="store_true",
                    help="start a new run in an output folder that holds one (cached references are kept)")
@@ -499,36 +676,94 @@ def _add_convert(sub) -> None:
     s.add_argument("--resize", action="store_true", default=c.resize, help="also write images_2/4/8")
     s.add_argument("--overwrite", action="store_true")
     s.add_argument("--threads", type=int, default=c.num_threads)
-    s.add_argument("--max-image-size", type=int, default=c.max_image_size)
+    s.add_argument("--max-image-size", type=positive_int, default=c.max_image_size)
     s.set_defaults(func=cmd_convert)
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``mi-gs optimize: error: argument --iterations: ... (see mi-gs optimize -h)``
+    instead of the usage block and the error."""
+
+    def error(self, message: str):
+        self.exit(EXIT_INPUT_ERROR, f"{self.prog}: error: {message} (see {self.prog} -h)\n")
+
+
+_VARIANT_HELP = "Mitsuba variant: llvm_ad_rgb or cuda_ad_rgb (default: cuda_ad_rgb if a GPU is available)"
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="mi-gs", description="3D Gaussian Splatting as a Mitsuba 3 plugin.")
-    p.add_argument("--variant", default=None,
-                   help="Mitsuba variant (default: cuda_ad_rgb if available, else llvm_ad_rgb)")
+    p = _Parser(prog="mi-gs", description="3D Gaussian Splatting as a Mitsuba 3 plugin.")
+    p.add_argument("--variant", default=None, help=_VARIANT_HELP)
     sub = p.add_subparsers(dest="command", required=True)
     for add in (_add_info, _add_render, _add_optimize, _add_eval, _add_convert):
         add(sub)
+    for s in sub.choices.values():
+        # (also after the subcommand; SUPPRESS: given there, it replaces the one before the subcommand)
+        s.add_argument("--variant", default=argparse.SUPPRESS, help=_VARIANT_HELP)
     return p
 
 
+def _explicit_options(argv) -> set[str]:
+    """The destinations of the options given on the command line (not left at their defaults)."""
+    parser = build_parser()
+    parsers = [parser] + [a for act in parser._actions if isinstance(act, argparse._SubParsersAction)
+                          for a in act.choices.values()]
+    for p in parsers:
+        for action in p._actions:
+            if not isinstance(action, (argparse._HelpAction, argparse._SubParsersAction)):
+                action.default = argparse.SUPPRESS
+    return set(vars(parser.parse_args(argv)))
+
+
 def main(argv=None) -> int:
+    """The error boundary: every expected failure is one line ``mi-gs: error: ...`` on stderr and exit status 2
+    (argparse's own errors included); a diverged run exits 3, Ctrl-C 130."""
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
+    args.explicit = _explicit_options(argv)
     try:
         _set_variant(args.variant)
         import mi_gaussians  # noqa: F401  (registers the plugins for the variant)
 
-        return args.func(args)
-    except (InputError, ValueError, FileNotFoundError, NotADirectoryError, PermissionError) as e:
-        print(f"mi-gs: error: {_one_line(e)}", file=sys.stderr)
-        return EXIT_INPUT_ERROR
+        status = args.func(args)
+        sys.stdout.flush()
+        return status
+    except BrokenPipeError:
+        return _broken_pipe()
+    except (InputError, ValueError, OSError) as e:
+        if isinstance(e, OSError) and e.errno == errno.EPIPE:
+            return _broken_pipe()
+        return _error(_one_line(e) if not isinstance(e, OSError) else _os_error(e))
     except RuntimeError as e:   # Mitsuba reports scene-file problems as RuntimeError
-        print(f"mi-gs: error: {_one_line(e)}", file=sys.stderr)
-        return EXIT_INPUT_ERROR
+        return _error(_one_line(e))
     except KeyboardInterrupt:
         print("mi-gs: interrupted", file=sys.stderr)
         return 130
+
+
+def _error(message: str) -> int:
+    print(f"mi-gs: error: {message}", file=sys.stderr)
+    return EXIT_INPUT_ERROR
+
+
+def _broken_pipe() -> int:
+    # the reader of our output went away (``mi-gs info ... | head``): say so once, and keep Python from
+    # complaining again when it flushes stdout at exit
+    import os
+
+    try:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    except OSError:
+        pass
+    return _error("standard output was closed before everything was written (broken pipe)")
+
+
+def _os_error(e: OSError) -> str:
+    """``[Errno 21] Is a directory: 'x.png'`` -> ``x.png: is a directory``."""
+    what = (e.strerror or str(e)).rstrip(".")
+    what = what[0].lower() + what[1:] if what else "cannot be written"
+    names = [str(n) for n in (e.filename, e.filename2) if n is not None]
+    return f"{' -> '.join(names)}: {what}" if names else _one_line(e)
 
 
 def _one_line(e: BaseException) -> str:

@@ -254,3 +254,8 @@ def ellipsoids_shape_dict(means, scales, rotations, opacities, sh_dc, sh_rest=No
     }
     d.update(extra)
     return d
+
+
+# The smallest image side a training or reference image may have (a resolution divisor or film size giving less is
+# refused: a handful of pixels trains nothing)
+MIN_IMAGE_SIDE = 16

@@ -63,3 +63,48 @@ def read_json_object(path: str | os.PathLike, what: str = "file", expect: str = 
     if not isinstance(d, dict):
         raise ValueError(f"{path}: expected {expect}")
     return d
+
+
+def _nearest_existing(path: str) -> str:
+    p = os.path.abspath(path)
+    while not os.path.exists(p):
+        parent = os.path.dirname(p)
+        if parent == p:
+            break
+        p = parent
+    return p
+
+
+def _check_creatable(path: str, kind: str) -> None:
+    """``path`` does not exist yet: its nearest existing ancestor must be a writable folder."""
+    anchor = _nearest_existing(path)
+    if not os.path.isdir(anchor):
+        raise ValueError(f"{path}: cannot create this {kind}: {anchor} is a file, not a folder")
+    if not os.access(anchor, os.W_OK | os.X_OK):
+        raise ValueError(f"{path}: cannot create this {kind}: {anchor} is not writable")
+
+
+def check_output_folder(path: str | os.PathLike) -> None:
+    """``path`` can be used as an output folder: an existing writable folder, or creatable (ValueError naming
+    the path otherwise). Checked before any work, so that a bad ``-o`` fails at once."""
+    path = os.fspath(path)
+    if os.path.exists(path):
+        if not os.path.isdir(path):
+            raise ValueError(f"{path}: is a file, not a folder (the output must be a folder)")
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise ValueError(f"{path}: the output folder is not writable")
+        return
+    _check_creatable(path, "output folder")
+
+
+def check_output_file(path: str | os.PathLike) -> None:
+    """``path`` can be written as an output file: not a folder, in a writable (or creatable) folder."""
+    path = os.fspath(path)
+    if os.path.isdir(path):
+        raise ValueError(f"{path}: is a folder, not a file (the output is an image file)")
+    if os.path.exists(path):
+        folder = os.path.dirname(os.path.abspath(path))
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise ValueError(f"{path}: its folder is not writable")
+        return
+    _check_creatable(path, "output file")

@@ -1,5 +1,5 @@
 """The output folder of ``mi-gs optimize`` (a run): the names of its outputs, whether it holds a run, clearing one,
-the settings it saved, and where its cached references are.
+the settings it saved, where its cached references are, and the lock that makes it one run's folder.
 
 A run folder holds ``config.json`` (the settings, the dataset and, for a Mitsuba scene, the references folder),
 ``checkpoints/``, the model ``point_cloud.ply``, metrics and reports, and by default the cached references of a scene
@@ -8,7 +8,8 @@ file in ``references/`` (kept when a run is cleared).
 
 from __future__ import annotations
 
-import json
+import contextlib
+import os
 import shutil
 from pathlib import Path
 
@@ -21,6 +22,69 @@ REFERENCES = "references"
 RUN_OUTPUTS = (CHECKPOINTS, "renders", "compare", CONFIG, "metrics.json", EVAL, "history.json", "curves.png",
                GAUSSIAN_SCENE, MODEL)
 _SAVED_MODELS = "point_cloud_*.ply"       # the models of TrainConfig.save_iterations
+LOCK = ".mi-gs.lock"
+# io_utils.atomic_path's temporary files (".<name>.<random>.tmp<ext>"), left behind when a process was killed
+# while writing
+_TEMPORARY = ".*.tmp*"
+
+
+class FolderBusy(ValueError):
+    """Another live process holds the output folder's lock."""
+
+
+class RunLock:
+    """An exclusive advisory lock (``fcntl.flock``) on ``OUTDIR/.mi-gs.lock``, which holds the PID of its owner.
+
+    The operating system releases it when the process ends in any way (``kill -9`` included), so a lock left by a
+    dead run is simply taken over. Taken before anything is written into the folder; a second run (or an ``eval``)
+    on the same folder gets :class:`FolderBusy` naming the PID that holds it."""
+
+    def __init__(self, out: Path):
+        self.out = Path(out)
+        self._fd = None
+
+    def acquire(self) -> "RunLock":
+        import fcntl
+
+        self.out.mkdir(parents=True, exist_ok=True)
+        path = self.out / LOCK
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 64, 0).decode("ascii", "replace").strip() or "unknown"
+            os.close(fd)
+            raise FolderBusy(f"{self.out}: another mi-gs process (PID {holder}) is using this output folder; "
+                             "wait for it to end or choose another folder") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        self._fd = fd
+        return self
+
+    def release(self) -> None:
+        if self._fd is not None:
+            with contextlib.suppress(OSError):
+                os.ftruncate(self._fd, 0)
+            os.close(self._fd)      # (closing releases the lock; the file stays, as lock files do)
+            self._fd = None
+
+    def __enter__(self) -> "RunLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def remove_temporary_files(out: Path) -> list[Path]:
+    """Remove the temporary files of interrupted atomic writes from a run folder (call with its lock held); the
+    removed paths."""
+    removed = []
+    for p in Path(out).rglob(_TEMPORARY):
+        if p.is_file() and ".tmp" in p.name:
+            with contextlib.suppress(FileNotFoundError):
+                p.unlink()
+                removed.append(p)
+    return removed
 
 
 def holds_run(out: Path) -> bool:
@@ -49,11 +113,30 @@ def clear_run(out: Path) -> None:
 
 
 def read_saved(out: Path, why: str) -> dict:
-    """The record ``config.json`` of the run in ``out``; ``why`` completes the error when it is missing."""
+    """The record ``config.json`` of the run in ``out``; ``why`` completes the error when it is missing. A record
+    without its dataset or its training settings is refused (ValueError naming the file)."""
+    from .io_utils import read_json_object
+
     path = out / CONFIG
     if not path.exists():
         raise ValueError(f"{path}: {why}")
-    return json.loads(path.read_text())
+    saved = read_json_object(path, "run record", "a JSON object (an mi-gs run record)")
+    if not isinstance(saved.get("train"), dict):
+        raise ValueError(f"{path}: the run record has no training settings (\"train\"); it was not written by "
+                         "mi-gs optimize or was edited")
+    if not isinstance(saved.get("dataset"), str):
+        raise ValueError(f"{path}: the run record does not name its dataset (\"dataset\")")
+    return saved
+
+
+def saved_config(saved: dict, out: Path):
+    """The TrainConfig of a run record (ValueError naming ``config.json`` when its settings are not valid)."""
+    from .config import TrainConfig
+
+    try:
+        return TrainConfig.from_dict(saved["train"])
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{out / CONFIG}: invalid training settings ({e})") from None
 
 
 def saved_cache(saved: dict | None, out: Path) -> str | None:
@@ -75,3 +158,12 @@ def saved_key(saved: dict | None) -> str | None:
 def references_root(out: Path, cache: str | None) -> Path:
     """Where a run's references are cached: ``cache`` when given, else OUTDIR/references."""
     return Path(cache) if cache else out / REFERENCES
+
+
+def remove_if_only_lock(out: Path) -> None:
+    """Remove the folder ``out`` if it holds nothing but its lock file (a run refused before writing anything)."""
+    out = Path(out)
+    with contextlib.suppress(OSError):
+        if {p.name for p in out.iterdir()} <= {LOCK}:
+            (out / LOCK).unlink(missing_ok=True)
+            out.rmdir()

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import DataConfig
+from ..conventions import MIN_IMAGE_SIDE
 from . import blender as _blender
 from . import colmap as _colmap
 from . import pointcloud as _pc
@@ -356,3 +357,63 @@ def load_dataset(path: str | os.PathLike, resolution: int = _DEFAULTS.resolution
         raise ValueError(f"{root}: image {dup!r} appears more than once")
     return Dataset(root=root, layout=layout, train=train, test=test, points_xyz=xyz, points_rgb=rgb,
                    background=bg, color_space=spaces.pop(), resolution=int(resolution))
+
+
+# ---------------------------------------------------------------------------------------------------- verification
+def check_trainable_size(ds: Dataset) -> None:
+    """Training images must have at least ``MIN_IMAGE_SIDE`` pixels per side (a resolution divisor too large for
+    the images is refused, naming the first view too small)."""
+    for v in ds.views:
+        c = v.camera
+        if min(c.width, c.height) < MIN_IMAGE_SIDE:
+            raise ValueError(f"{v.image_path}: at resolution 1/{ds.resolution} this view is {c.width}x{c.height} "
+                             f"pixels; training needs at least {MIN_IMAGE_SIDE} per side (use a smaller divisor)")
+
+
+def unreadable_images(views: list[View], progress: bool = False) -> list[str]:
+    """Decode every view's image (and mask) once; the one-line problems of those that cannot be read ("file:
+    problem"), empty when all can. Run before anything is written, since views are otherwise decoded only when
+    training or evaluation reaches them."""
+    from tqdm import tqdm
+
+    problems = []
+    for v in tqdm(views, desc="checking images", unit="image", disable=not progress or len(views) < 2,
+                  leave=False):
+        try:
+            v.loader.load(v.image_path)
+        except (ValueError, OSError) as e:
+            problems.append(str(e) if str(v.image_path) in str(e) else f"{v.image_path}: {e}")
+    return problems
+
+
+def verify_images(views: list[View], progress: bool = False) -> None:
+    """:func:`unreadable_images`, raising ValueError with the first problem (and how many more there are)."""
+    problems = unreadable_images(views, progress)
+    if problems:
+        more = f" (and {len(problems) - 1} more unreadable images)" if len(problems) > 1 else ""
+        raise ValueError(problems[0] + more)
+
+
+def fingerprint(ds: Dataset) -> str:
+    """A content fingerprint of what a run trains on: every view's name, camera and image (and mask) file bytes, the
+    initial points, the background and the colour encoding (SHA-256, hex). A resumed run must see the same."""
+    import hashlib
+
+    h = hashlib.sha256()
+    h.update(f"{ds.layout}|{ds.color_space}|{ds.resolution}|".encode())
+    h.update(np.asarray(ds.background, np.float64).tobytes())
+    for split, views in (("train", ds.train), ("test", ds.test)):
+        for v in views:
+            c = v.camera
+            h.update(f"{split}|{v.name}|{c.width}|{c.height}|".encode())
+            h.update(np.array([c.fx, c.fy, c.cx, c.cy], np.float64).tobytes())
+            h.update(np.asarray(c.world_to_camera, np.float64).tobytes())
+            for path in (v.image_path, getattr(v.loader, "mask_path", None)):
+                if path is not None:
+                    with open(path, "rb") as f:
+                        for block in iter(lambda: f.read(1 << 20), b""):
+                            h.update(block)
+    for pts in (ds.points_xyz, ds.points_rgb):
+        if pts is not None:
+            h.update(np.ascontiguousarray(pts, np.float32).tobytes())
+    return h.hexdigest()

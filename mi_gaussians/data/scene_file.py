@@ -27,10 +27,22 @@ def parse_defines(defines) -> dict[str, str]:
     return out
 
 
-def _first_line_without_location(e: RuntimeError) -> str:
-    """Mitsuba's "[parser.cpp:1087] Parsing of XML file ... failed: ..." -> its first line without the prefix."""
-    text = str(e).strip()
-    return re.sub(r"^\[[^\]]*\]\s*", "", text.splitlines()[0] if text else "cannot load")
+def _mitsuba_message(e: RuntimeError, path: Path) -> str:
+    """Mitsuba's error as one line that keeps its cause: the "[parser.cpp:...]" prefixes dropped, a list under a
+    heading joined to it ("Found unused parameters: $nosuch=1"), and of nested errors ("while processing
+    <include>:" then the included file's problem) the innermost one, without repeating ``path``."""
+    lines = [re.sub(r"^\[[^\]]*\]\s*", "", ln).strip() for ln in str(e).strip().splitlines()]
+    lines = [ln for ln in lines if ln]
+    if not lines:
+        return "cannot load"
+    items = [ln[1:].strip() for ln in lines[1:] if ln.startswith("- ")]
+    if lines[0].endswith(":") and items and len(items) == len(lines) - 1:
+        text = f"{lines[0]} {', '.join(items)}"
+    else:
+        text = lines[-1]
+    for where in (str(path), str(path.resolve())):
+        text = text.replace(f"Error while loading {where} ", "")
+    return re.sub(r"^\((line \d+, col \d+)\):", r"\1:", text)
 
 
 def load_file(path: str | os.PathLike, defines=()):
@@ -46,7 +58,7 @@ def load_file(path: str | os.PathLike, defines=()):
     try:
         return mi.load_file(str(p), **params)
     except RuntimeError as e:
-        raise ValueError(f"{p}: {_first_line_without_location(e)}") from None
+        raise ValueError(f"{p}: {_mitsuba_message(e, p)}") from None
 
 
 def scene_bbox(scene) -> tuple[np.ndarray, np.ndarray]:

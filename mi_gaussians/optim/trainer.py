@@ -194,6 +194,9 @@ class Trainer:
         except (KeyError, TypeError, ValueError) as e:
             raise ValueError(f"{path}: checkpoint does not fit this run ({e})") from None
         self.step = int(meta["step"])
+        if self.step > self.cfg.optim.iterations:
+            raise ValueError(f"{path}: the run is already at iteration {self.step}, past the "
+                             f"{self.cfg.optim.iterations} iterations asked for")
         self.elapsed = float(meta["elapsed"])
         self.history = History(**meta["history"])
         self.sampler.restore(meta["sampler"])
@@ -360,14 +363,16 @@ class Trainer:
                                    color_space=self.ds.color_space)
         return summarize(scores)["psnr"]
 
-    def run(self, resume: bool = False) -> dict:
+    def run(self, resume: bool = False, record: dict | None = None) -> dict:
+        """Train to ``cfg.optim.iterations`` (from the checkpoint with ``resume``) and write the outputs; ``record``:
+        more entries for ``config.json`` (e.g. the dataset's fingerprint)."""
         from tqdm import tqdm
 
         cfg = self.cfg
         self.out.mkdir(parents=True, exist_ok=True)
         if resume:
             self.load_checkpoint()
-        saved = {"dataset": str(Path(self.ds.root).resolve()), "train": cfg.to_dict()}
+        saved = {"dataset": str(Path(self.ds.root).resolve()), **(record or {}), "train": cfg.to_dict()}
         if self.ds.references is not None:
             saved["references"] = str(Path(self.ds.references).resolve())
         report.write_json(self.out / "config.json", saved)
