@@ -509,10 +509,6 @@ def _eval_dataset(saved: dict, cfg, out: Path, dataset: str | None):
 
 def cmd_eval(args) -> int:
     from . import run_folder
-    from .config import TrainConfig
-    from .evaluate import evaluate_views, scores_report
-    from .model.gaussians import Gaussians
-    from .report import write_json
 
     out = Path(args.run)
     ply = out / run_folder.MODEL
@@ -520,7 +516,17 @@ def cmd_eval(args) -> int:
         if not p.exists():
             raise InputError(f"{p}: missing (is {out} an mi-gs optimize output folder?)")
     saved = run_folder.read_saved(out, "missing")
-    cfg = TrainConfig.from_dict(saved["train"])
+    cfg = run_folder.saved_config(saved, out)
+    with run_folder.RunLock(out):                 # (not while a run is writing the folder)
+        return _eval_locked(args, out, ply, saved, cfg)
+
+
+def _eval_locked(args, out: Path, ply: Path, saved: dict, cfg) -> int:
+    from . import run_folder
+    from .evaluate import evaluate_views, scores_report
+    from .model.gaussians import Gaussians
+    from .report import write_json
+
     ds = _eval_dataset(saved, cfg, out, args.dataset)
     views = ds.test if ds.test else ds.train
     g = Gaussians.load_ply(ply)
@@ -681,11 +687,11 @@ def _add_convert(sub) -> None:
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse with one-line errors: ``mi-gs optimize: error: argument --iterations: ... (see mi-gs optimize -h)``
-    instead of the usage block and the error."""
+    """argparse with one-line errors: ``mi-gs: error: argument --iterations: ... (see mi-gs optimize -h)`` instead
+    of the usage block and the error."""
 
     def error(self, message: str):
-        self.exit(EXIT_INPUT_ERROR, f"{self.prog}: error: {message} (see {self.prog} -h)\n")
+        self.exit(EXIT_INPUT_ERROR, f"mi-gs: error: {message} (see {self.prog} -h)\n")
 
 
 _VARIANT_HELP = "Mitsuba variant: llvm_ad_rgb or cuda_ad_rgb (default: cuda_ad_rgb if a GPU is available)"
