@@ -430,8 +430,7 @@ def cmd_optimize(args) -> int:
         return _optimize_locked(args, src, out, cfg, saved)
     except BaseException:
         if created:                               # (a run refused before it wrote anything leaves no folder)
-            lock.release()
-            run_folder.remove_if_only_lock(out)
+            lock.release_and_remove_if_empty()
         raise
     finally:
         lock.release()

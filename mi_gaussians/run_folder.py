@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -23,9 +24,10 @@ RUN_OUTPUTS = (CHECKPOINTS, "renders", "compare", CONFIG, "metrics.json", EVAL, 
                GAUSSIAN_SCENE, MODEL)
 _SAVED_MODELS = "point_cloud_*.ply"       # the models of TrainConfig.save_iterations
 LOCK = ".mi-gs.lock"
-# io_utils.atomic_path's temporary files (".<name>.<random>.tmp<ext>"), left behind when a process was killed
-# while writing
-_TEMPORARY = ".*.tmp*"
+# io_utils.atomic_path's temporary files (".<name>.<8 random characters from mkstemp>.tmp<ext>"), left behind when a
+# process was killed while writing; looked for only in the folders a run writes
+_TEMPORARY = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?$")
+_WRITTEN_FOLDERS = ("", CHECKPOINTS, "renders", "compare")
 
 
 class FolderBusy(ValueError):
@@ -56,10 +58,27 @@ class RunLock:
             os.close(fd)
             raise FolderBusy(f"{self.out}: another mi-gs process (PID {holder}) is using this output folder; "
                              "wait for it to end or choose another folder") from None
+        try:
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            same = False
+        if not same:                # another run removed the folder it gave up while we waited: start again
+            os.close(fd)
+            return self.acquire()
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         self._fd = fd
         return self
+
+    def release_and_remove_if_empty(self) -> None:
+        """Release the lock; first, while still holding it, remove the folder if it holds nothing but the lock
+        file (a run refused before it wrote anything leaves no folder behind)."""
+        if self._fd is not None:
+            with contextlib.suppress(OSError):
+                if {p.name for p in self.out.iterdir()} <= {LOCK}:
+                    (self.out / LOCK).unlink()
+                    self.out.rmdir()
+        self.release()
 
     def release(self) -> None:
         if self._fd is not None:
@@ -79,11 +98,15 @@ def remove_temporary_files(out: Path) -> list[Path]:
     """Remove the temporary files of interrupted atomic writes from a run folder (call with its lock held); the
     removed paths."""
     removed = []
-    for p in Path(out).rglob(_TEMPORARY):
-        if p.is_file() and ".tmp" in p.name:
-            with contextlib.suppress(FileNotFoundError):
-                p.unlink()
-                removed.append(p)
+    for sub in _WRITTEN_FOLDERS:
+        folder = Path(out) / sub
+        if not folder.is_dir():
+            continue
+        for p in folder.iterdir():
+            if _TEMPORARY.match(p.name) and p.is_file():
+                with contextlib.suppress(FileNotFoundError):
+                    p.unlink()
+                    removed.append(p)
     return removed
 
 
@@ -158,12 +181,3 @@ def saved_key(saved: dict | None) -> str | None:
 def references_root(out: Path, cache: str | None) -> Path:
     """Where a run's references are cached: ``cache`` when given, else OUTDIR/references."""
     return Path(cache) if cache else out / REFERENCES
-
-
-def remove_if_only_lock(out: Path) -> None:
-    """Remove the folder ``out`` if it holds nothing but its lock file (a run refused before writing anything)."""
-    out = Path(out)
-    with contextlib.suppress(OSError):
-        if {p.name for p in out.iterdir()} <= {LOCK}:
-            (out / LOCK).unlink(missing_ok=True)
-            out.rmdir()

@@ -99,8 +99,10 @@ def test_two_runs_started_together_do_not_mix(tmp_path):
     """Two real processes on one folder: one trains, the other is refused with the first one's PID."""
     exe = Path(sys.executable).parent / "mi-gs"
     out = tmp_path / "run"
-    first = subprocess.Popen([str(exe), "optimize", str(DATA / "tiny_blender"), "-o", str(out), "--iterations", "400",
-                              "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # (so many iterations that the first run is still training when the second one asks; killed afterwards)
+    first = subprocess.Popen([str(exe), "optimize", str(DATA / "tiny_blender"), "-o", str(out), "--iterations",
+                              "1000000", "--checkpoint-every", "50", "--quiet"],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.time() + 120
         while time.time() < deadline and not ((out / run_folder.LOCK).exists()
@@ -108,11 +110,14 @@ def test_two_runs_started_together_do_not_mix(tmp_path):
             time.sleep(0.05)
         assert (out / run_folder.LOCK).read_text().strip() == str(first.pid)
         second = run("optimize", DATA / "tiny_ngp", "-o", out, "--iterations", 5, "--quiet")
+        assert first.poll() is None, "the first run ended early"
         assert_one_line_error(second, "another mi-gs process", f"PID {first.pid}")
-        assert first.wait(timeout=600) == 0, first.stderr.read()
+        deadline = time.time() + 300
+        while time.time() < deadline and not (out / "config.json").exists():
+            time.sleep(0.1)
     finally:
-        if first.poll() is None:
-            first.kill()
+        first.kill()
+        first.wait(timeout=60)
     assert json.loads((out / "config.json").read_text())["dataset"] == str((DATA / "tiny_blender").resolve())
 
 
@@ -156,9 +161,14 @@ def test_resume_refuses_options_that_change_the_run(copy_of):
     assert_one_line_error(run("optimize", data, "-o", out, "--resume", "--background", 1, "--quiet"),
                           "--background", "data.background")
     assert snapshot(out) == before
-    # an option given again with the run's own value is fine
+    # an option given again with the run's own value is fine; a parser default given explicitly is an option given
     res = run("optimize", data, "-o", out, "--resume", "--seed", 0, "--quiet")
     assert res.returncode == 0, res.stderr
+    cfg = json.loads((out / "config.json").read_text())
+    cfg["train"]["optim"]["sh_degree"] = 1
+    (out / "config.json").write_text(json.dumps(cfg))
+    assert_one_line_error(run("optimize", data, "-o", out, "--resume", "--sh-degree", 3, "--quiet"),
+                          "--sh-degree gives optim.sh_degree = 3, the run has 1")
 
 
 def test_resume_extends_iterations_and_refuses_going_back(copy_of):
@@ -175,13 +185,15 @@ def test_resume_extends_iterations_and_refuses_going_back(copy_of):
 
 def test_stale_temporary_files_are_removed(copy_of):
     data, out = copy_of
-    stale = [out / "checkpoints" / ".ckpt.npz.k1l2m3.tmp.npz", out / ".metrics.json.x9y8.tmp.json"]
-    for p in stale:
+    stale = [out / "checkpoints" / ".ckpt.npz.k1l2m3_9.tmp.npz", out / ".metrics.json.x9y8ab_c.tmp.json",
+             out / "renders" / ".r_0.png.q2w3e4r5.tmp.png"]
+    foreign = [out / ".env.tmpl", out / "notes.tmp", out / "checkpoints" / ".other.tmp"]   # not ours: kept
+    for p in stale + foreign:
         p.write_bytes(b"partial")
     res = run("optimize", data, "-o", out, "--resume", "--iterations", 7, "--quiet")
     assert res.returncode == 0, res.stderr
     assert not any(p.exists() for p in stale)
-    assert not list(out.rglob(".*.tmp*"))
+    assert all(p.exists() for p in foreign)
 
 
 # ---------------------------------------------------------------------------------------------------- 4. tracebacks

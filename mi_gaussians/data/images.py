@@ -54,7 +54,7 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
             return int(im.size[0]), int(im.size[1])
     except FileNotFoundError:
         raise ValueError(f"{path}: image file not found") from None
-    except (UnidentifiedImageError, OSError) as e:
+    except (UnidentifiedImageError, OSError, SyntaxError) as e:   # (Pillow: SyntaxError for a broken PNG chunk)
         raise ValueError(f"{path}: not a readable image ({e})") from None
 
 
@@ -81,7 +81,7 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
                 arr = np.asarray(rgb).astype(np.float32) / 255.0
     except FileNotFoundError:
         raise ValueError(f"{path}: image file not found") from None
-    except (UnidentifiedImageError, OSError) as e:
+    except (UnidentifiedImageError, OSError, SyntaxError) as e:   # (Pillow: SyntaxError for a broken PNG chunk)
         raise ValueError(f"{path}: not a readable image ({e})") from None
     return np.ascontiguousarray(arr, dtype=np.float32)
 
