@@ -7,6 +7,7 @@ tests/data/make_fixtures.py.
 from __future__ import annotations
 
 import csv
+import struct
 import json
 import logging
 import shutil
@@ -123,7 +124,49 @@ def test_tiny_colmap_exact(tmp_path):
     image = rec.find_image_with_name("b.png")
     w2c = np.eye(4)
     w2c[:3, :4] = np.asarray(image.cam_from_world().matrix(), dtype=np.float64)
-    np.testing.assert_allclose(w2c, ds.train[1].camera.world_to_camera)
+    np.testing.assert_allclose(w2c, ds.train[1].camera.world_to_camera, rtol=0, atol=1e-12)
+
+
+def _compare_with_pycolmap(model_dir: Path) -> None:
+    import pycolmap
+
+    from mi_gaussians.data.colmap import read_model
+
+    ours, rec = read_model(model_dir), pycolmap.Reconstruction(str(model_dir))
+    assert sorted(ours.cameras) == sorted(rec.cameras)
+    for cid, c in rec.cameras.items():
+        o = ours.cameras[cid]
+        assert (o.model, o.width, o.height) == (c.model.name, c.width, c.height)
+        assert o.params == tuple(float(p) for p in c.params)
+    assert sorted(i.image_id for i in ours.images) == sorted(k for k, v in rec.images.items() if v.has_pose)
+    for o in ours.images:
+        im = rec.images[o.image_id]
+        assert (o.name, o.camera_id) == (im.name, im.camera_id)
+        np.testing.assert_allclose(o.world_to_camera[:3], np.asarray(im.cam_from_world().matrix()), rtol=0, atol=1e-12)
+    ids = sorted(rec.points3D)          # COLMAP writes points in id order; we keep the file's order
+    np.testing.assert_array_equal(ours.points_xyz, np.array([rec.points3D[i].xyz for i in ids], np.float32))
+    np.testing.assert_array_equal(ours.points_rgb,
+                                  np.array([rec.points3D[i].color for i in ids], np.float32) / np.float32(255.0))
+
+
+@pytest.mark.parametrize("rel", ["mi_objects/colmap", "mi_room/colmap", "maryrose"])
+def test_colmap_reader_matches_pycolmap(shared_data, rel, tmp_path):
+    """Our COLMAP parser (text and binary) reads exactly what pycolmap reads, on every shared COLMAP model, in the
+    model's own format and in the other one (written by pycolmap)."""
+    import pycolmap
+
+    root = shared_data / rel / "sparse" / "0"
+    if not root.is_dir():
+        pytest.skip(f"{root} is missing")
+    _compare_with_pycolmap(root)
+    other = tmp_path / "other"
+    other.mkdir()
+    rec = pycolmap.Reconstruction(str(root))
+    if (root / "cameras.bin").is_file():
+        rec.write_text(str(other))
+    else:
+        rec.write_binary(str(other))
+    _compare_with_pycolmap(other)
 
 
 # ------------------------------------------------------------------------------------------------ Blender / splits
@@ -495,8 +538,8 @@ def test_error_colmap_unsupported_model(tmp_path):
     (root / "sparse" / "0" / "cameras.txt").write_text("1 OPENCV_FISHEYE 24 16 20 20 11.5 7.25 0.1 0 0 0\n")
     with pytest.raises(ValueError) as e:
         load_dataset(root)
-    assert one_line(e).startswith(f"{root / 'sparse' / '0' / 'cameras.txt'}: unsupported COLMAP camera model "
-                                  "OPENCV_FISHEYE")
+    assert one_line(e).startswith(f"{root / 'sparse' / '0' / 'cameras.txt'}, line 1: unsupported COLMAP camera "
+                                  "model OPENCV_FISHEYE")
 
 
 def test_error_colmap_malformed_model(tmp_path):
@@ -504,10 +547,94 @@ def test_error_colmap_malformed_model(tmp_path):
     (root / "sparse" / "0" / "cameras.txt").write_text("1 PINHOLE 24 16 20\n")
     with pytest.raises(ValueError) as e:
         load_dataset(root)
-    assert one_line(e).startswith(f"{root / 'sparse' / '0'}: cannot read the COLMAP model")
+    assert one_line(e) == f"{root / 'sparse' / '0' / 'cameras.txt'}, line 1: a PINHOLE camera has 4 parameters, got 1"
     (root / "sparse" / "0" / "points3D.txt").unlink()
     with pytest.raises(ValueError, match=r"incomplete COLMAP model, missing points3D\.txt"):
         load_dataset(root)
+
+
+def _edit_lines(path: Path, edit) -> None:
+    lines = path.read_text().splitlines()
+    path.write_text("".join(line + "\n" for line in edit(lines)))
+
+
+# (file, edit of its lines, expected message after "<file>, line N: "); line 3 of images.txt is the first image's
+# header (after two comment lines), line 4 its points; line 2 of points3D.txt is the first point.
+_MALFORMED_TEXT = [
+    ("images", lambda L: L[:2] + [L[2].rsplit(" ", 1)[0]] + L[3:], 3,
+     "expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME (10 fields, names without spaces), got 9 fields"),
+    ("images", lambda L: L[:2] + [L[2].replace(" ", " abc", 1)] + L[3:], 3, "QW is 'abc0.40193708680852441', not a number"),
+    ("images", lambda L: L[:3] + [L[3] + " 1.0"] + L[4:], 4, "the points of image 'a.png' are not X Y POINT3D_ID triples"),
+    ("images", lambda L: L[:3] + L[4:], 4, "the points of image 'a.png' are not X Y POINT3D_ID triples (10 values)"),
+    ("images", lambda L: L[:3], 4, "the file ends before the points line of image 'a.png'"),
+    ("images", lambda L: L[:2] + [L[2].replace(" 1 a.png", " 7 a.png")] + L[3:], 3,
+     "image 'a.png' refers to camera 7, which cameras does not define (cameras: 1)"),
+    ("images", lambda L: L[:2] + [L[2]] * 2 + L[3:], 4, "the points of image 'a.png' are not X Y POINT3D_ID triples"),
+    ("images", lambda L: L[:4] + L[2:4] + L[4:], 5, "duplicate IMAGE_ID 1"),
+    ("cameras", lambda L: [L[0], L[1].replace("PINHOLE", "FOO")], 2, "unsupported COLMAP camera model FOO (camera 1)"),
+    ("cameras", lambda L: [L[0], L[1].replace(" 24 ", " -24 ")], 2, "camera 1 has the image size -24x16"),
+    ("cameras", lambda L: [L[0], L[1].replace(" 20.0 ", " nan ", 1)], 2, "camera 1 has non-finite parameters"),
+    ("cameras", lambda L: [L[0], L[1], L[1]], 3, "duplicate CAMERA_ID 1"),
+    ("points3D", lambda L: [L[0], L[1].replace(" ", " x", 1)] + L[2:], 2, "X is 'x0.10956934985716349', not a number"),
+    ("points3D", lambda L: [L[0], L[1] + " 3"] + L[2:], 2,
+     "expected POINT3D_ID X Y Z R G B ERROR and IMAGE_ID POINT2D_IDX pairs, got 15 fields"),
+    ("points3D", lambda L: [L[0], L[1].replace(" 20 76 ", " 20 760 ")] + L[2:], 2, "colour [20, 760, 123] is outside 0..255"),
+]
+
+
+@pytest.mark.parametrize("stem, edit, line, message", _MALFORMED_TEXT)
+def test_error_colmap_malformed_text_names_file_and_line(tmp_path, stem, edit, line, message):
+    """A malformed COLMAP text model is refused with the file, the line and the problem (pycolmap said only
+    "Check failed: line_stream1 >> ..." or "Rig with ID 7 does not exist")."""
+    root = copy_fixture("tiny_colmap", tmp_path)
+    path = root / "sparse" / "0" / f"{stem}.txt"
+    _edit_lines(path, edit)
+    with pytest.raises(ValueError) as e:
+        load_dataset(root)
+    assert one_line(e).startswith(f"{path}, line {line}: {message}")
+
+
+def test_error_colmap_non_utf8_text(tmp_path):
+    root = copy_fixture("tiny_colmap", tmp_path)
+    path = root / "sparse" / "0" / "images.txt"
+    path.write_bytes(path.read_bytes()[:200] + b"\xff\xfe")
+    with pytest.raises(ValueError) as e:
+        load_dataset(root)
+    assert one_line(e) == f"{path}, line 3: not UTF-8 text"
+
+
+def test_error_colmap_malformed_binary(tmp_path):
+    """A malformed binary model names the file, the record and the byte offset."""
+    import pycolmap
+
+    root = copy_fixture("tiny_colmap", tmp_path)
+    sparse = root / "sparse" / "0"
+    pycolmap.Reconstruction(str(sparse)).write_binary(str(sparse))
+    for stem in ("cameras", "images", "points3D"):
+        (sparse / f"{stem}.txt").unlink()
+    assert len(load_dataset(root, test_every=0).train) == 3
+    images = sparse / "images.bin"
+    good = images.read_bytes()
+    cases = [
+        (good[:250], f"{images}: truncated file (image record 1, byte 230 of 250)"),
+        (good[:400], f"{images}: 6 2D points do not fit in the rest of the file (image record 1, byte 308 of 400)"),
+        (good + b"\0", f"{images}: 1 bytes after the last record (byte {len(good)} of {len(good) + 1})"),
+        (struct.pack("<Q", 10**12) + good[8:], f"{images}: 1000000000000 images do not fit in the file (byte 8 of "),
+    ]
+    for data, message in cases:
+        images.write_bytes(data)
+        with pytest.raises(ValueError) as e:
+            load_dataset(root)
+        assert one_line(e).startswith(message), one_line(e)
+    images.write_bytes(good)
+    cameras = sparse / "cameras.bin"
+    data = bytearray(cameras.read_bytes())
+    data[12:16] = struct.pack("<i", 5)         # OPENCV_FISHEYE
+    cameras.write_bytes(bytes(data))
+    with pytest.raises(ValueError) as e:
+        load_dataset(root)
+    assert one_line(e).startswith(f"{cameras}: unsupported COLMAP camera model id 5 (camera 1); supported: 0 "
+                                  "SIMPLE_PINHOLE") and one_line(e).endswith("(camera record 0, byte 32 of 64)")
 
 
 def test_error_blender_malformed_json(tmp_path):
