@@ -259,3 +259,8 @@ def ellipsoids_shape_dict(means, scales, rotations, opacities, sh_dc, sh_rest=No
 # The smallest image side a training or reference image may have (a resolution divisor or film size giving less is
 # refused: a handful of pixels trains nothing)
 MIN_IMAGE_SIDE = 16
+
+#: Largest magnitude of a colour (SH) coefficient a model may hold. A trained model's are below ~10; at 1e12 the
+#: colour of a degree-3 Gaussian stays below 0.5 + 16 * 1.1 * 1e12 ~ 1.8e13, whose sRGB decoding (x^2.4, for linear EXR
+#: output) and square (SSIM) are still finite in float32. Larger values render Inf pixels, so models are refused.
+MAX_ABS_SH_COEFFICIENT = 1e12

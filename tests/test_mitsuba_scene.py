@@ -198,6 +198,38 @@ def test_rig_takes_the_sensors_aspect_and_rejects_bad_options(tmp_path):
             scene_views(scene, p, dataclasses.replace(SceneConfig(), **bad))
 
 
+ORTHO = """
+    <sensor type="orthographic" id="top">
+        <transform name="to_world"><lookat origin="0, 3, 0" target="0, 0, 0" up="0, 0, 1"/></transform>
+        <sampler type="independent"><integer name="sample_count" value="6"/></sampler>
+        <film type="hdrfilm"><integer name="width" value="36"/><integer name="height" value="24"/></film>
+    </sensor>"""
+
+
+def test_single_orthographic_sensor_is_not_replaced_silently(tmp_path):
+    """A scene whose only sensor is orthographic was trained on a 40-degree perspective rig without a word; it is now
+    refused unless a field of view is given, and then the rig keeps the sensor's film, up direction and samples."""
+    p = write_scene(tmp_path / "ortho.xml", sensors=[ORTHO])
+    scene = load_scene(p)
+    with pytest.raises(ValueError) as e:
+        scene_views(scene, p, SceneConfig(views=2, test_views=1))
+    assert str(e.value) == (f"{p}: the scene's sensor 'top' (OrthographicCamera) is not perspective, and the generated "
+                            "camera rig is; give --fov DEGREES to train on a perspective rig anyway (the rasterizer "
+                            "renders pinhole cameras only)")
+    v = scene_views(scene, p, SceneConfig(views=3, test_views=1, fov=30.0))
+    assert (v.train[0].width, v.train[0].height, v.spp) == (36, 24, 6)
+    assert math.isclose(math.degrees(v.train[0].fov_x), 30.0, rel_tol=1e-9)
+    for c in v.train:     # up is +z: every camera's image "up" (-y in OpenCV axes) leans towards +z
+        assert -c.camera_to_world[2, 1] > 0
+
+
+def test_single_orthographic_sensor_cli(tmp_path):
+    p = write_scene(tmp_path / "ortho.xml", sensors=[ORTHO])
+    r = run("optimize", p, "-o", tmp_path / "out", "--iterations", "1", "--views", "2", "--test-views", "1")
+    assert_one_line_error(r, f"{p}: the scene's sensor 'top' (OrthographicCamera) is not perspective")
+    assert not (tmp_path / "out").exists()
+
+
 def test_declared_sensors_are_the_views(tmp_path):
     import mitsuba as mi
 

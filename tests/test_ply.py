@@ -174,6 +174,8 @@ def test_header_is_byte_exact_copy_of_reference_layout(tmp_path):
 
 def test_gaussians_save_load_round_trip(tmp_path):
     a = random_arrays(11, 2, seed=3)
+    for k in ("sh_dc", "sh_rest"):      # a model to render: no colour beyond MAX_ABS_SH_COEFFICIENT (tested below)
+        a[k] = np.where(np.abs(a[k]) > cv.MAX_ABS_SH_COEFFICIENT, np.float32(2.5), a[k])
     g = Gaussians.from_numpy(**a)
     g.save_ply(tmp_path / "g.ply")
     h = Gaussians.load_ply(tmp_path / "g.ply")
@@ -351,6 +353,46 @@ def test_nonfinite_values(tmp_path, bad, word):
     one_line_error(ei, p, f"2 {word} in 'scale_2'", f"1 {word} in 'f_rest_15'")
     b = read_ply(p, allow_nonfinite=True)
     assert np.isnan(b["scales"][1, 2]) if word == "NaN" else np.isinf(b["scales"][1, 2])
+
+
+def test_colours_beyond_float32_range_refused(tmp_path):
+    """f_dc = 1e30 rendered Inf pixels (sRGB decoding overflowed float32, with a NumPy RuntimeWarning); such a model
+    is refused, naming the property; the largest allowed magnitude still renders finite."""
+    a = random_arrays(6, 3, odd=False)
+    a["sh_dc"][2, 0] = 1e30
+    p = tmp_path / "bright.ply"
+    write_ply(p, **a)
+    assert read_ply(p)["sh_dc"][2, 0] == np.float32(1e30)    # the file layer reads every finite float32
+    with pytest.raises(ValueError) as ei:
+        Gaussians.load_ply(p)
+    one_line_error(ei, p, "1 colour coefficient beyond +-1e+12 (largest 1e+30 in 'f_dc_0')")
+    a["sh_dc"][2, 0] = 0.0
+    a["sh_rest"][1, 14, 2] = -5e12       # coefficient 14 of B -> f_rest_{30 + 14}
+    write_ply(p, **a)
+    with pytest.raises(ValueError) as ei:
+        read_ply(p, renderable=True)
+    one_line_error(ei, p, "(largest 5e+12 in 'f_rest_44')")
+
+
+def test_largest_allowed_colour_renders_finite(tmp_path):
+    """Every colour coefficient of the shipped model at +-MAX_ABS_SH_COEFFICIENT: the linear EXR render is finite."""
+    import OpenEXR
+
+    from test_cli import run
+
+    root = Path(__file__).resolve().parents[1] / "scenes"
+    a = read_ply(root / "tiny_gaussians.ply")
+    rng = np.random.default_rng(0)
+    for k in ("sh_dc", "sh_rest"):
+        a[k] = np.float32(cv.MAX_ABS_SH_COEFFICIENT) * np.where(rng.random(a[k].shape) < 0.7, 1.0, -1.0)
+    write_ply(tmp_path / "bright.ply", **a)
+    r = run("render", tmp_path / "bright.ply", "--camera", root / "tiny_gaussians_camera.json", "-o",
+            tmp_path / "bright.exr")
+    assert r.returncode == 0, r.stderr
+    assert "RuntimeWarning" not in r.stderr
+    with OpenEXR.File(str(tmp_path / "bright.exr")) as f:
+        img = np.asarray(next(iter(f.parts[0].channels.values())).pixels)
+    assert np.all(np.isfinite(img)) and img.max() > 1e25
 
 
 def test_double_overflow_reported_as_inf(tmp_path):

@@ -5,7 +5,8 @@ A scene that declares several sensors is used as it is: its sensors are the came
 bounding box: ``views`` training and ``test_views`` held-out cameras on a hemisphere (elevation range above the plane
 orthogonal to ``up``) or a full sphere, each set spread evenly (a Fibonacci lattice with its own random azimuth
 offset, so test cameras are new poses), all looking at the centre of the bounding box. The rig takes the field of
-view, film size, up direction and sample count of the scene's first sensor unless told otherwise.
+view, film size, up direction and sample count of the scene's first sensor unless told otherwise; a first sensor
+that is not perspective (orthographic) is refused unless a field of view is given.
 """
 
 from __future__ import annotations
@@ -82,17 +83,28 @@ def rig_directions(n: int, kind: str, up, elevation: tuple[float, float], azimut
 
 
 # ---------------------------------------------------------------------------------------------------- sensors
-def _sensor_defaults(scene) -> dict:
-    """fov / resolution / up / spp of the scene's first perspective sensor (empty when it has none)."""
-    for s in scene.sensors():
-        if s.class_name() != "PerspectiveCamera":
-            continue
-        cam = Camera.from_mitsuba(s)
-        up = -cam.camera_to_world[:3, 1]       # OpenCV y points down
-        spp = int(s.sampler().sample_count()) if s.sampler() is not None else None
-        return {"fov": math.degrees(cam.fov_x), "resolution": (cam.width, cam.height), "up": _snap_axis(up),
-                "spp": spp}
-    return {}
+def _sensor_defaults(scene, p: Path, cfg: SceneConfig) -> dict:
+    """fov / resolution / up / spp of the scene's first sensor (empty when it has none).
+
+    A first sensor that is not perspective (e.g. ``orthographic``) is refused unless ``cfg.fov`` is given: the rig's
+    cameras are perspective, and silently putting a 40-degree rig in place of an orthographic view would train on
+    pictures the scene's author never framed. With ``--fov`` its film size, up direction and sample count are used."""
+    sensors = list(scene.sensors())
+    if not sensors:
+        return {}
+    s = sensors[0]
+    spp = int(s.sampler().sample_count()) if s.sampler() is not None else None
+    if s.class_name() != "PerspectiveCamera":
+        if cfg.fov is None:
+            raise ValueError(f"{p}: the scene's sensor {s.id() or 0!r} ({s.class_name()}) is not perspective, and "
+                             "the generated camera rig is; give --fov DEGREES to train on a perspective rig anyway (the "
+                             "rasterizer renders pinhole cameras only)")
+        to_world = np.array(s.world_transform().matrix, dtype=np.float64).reshape(4, 4)
+        size = tuple(int(v) for v in s.film().size())
+        return {"resolution": size, "up": _snap_axis(to_world[:3, 1]), "spp": spp}
+    cam = Camera.from_mitsuba(s)
+    up = -cam.camera_to_world[:3, 1]       # OpenCV y points down
+    return {"fov": math.degrees(cam.fov_x), "resolution": (cam.width, cam.height), "up": _snap_axis(up), "spp": spp}
 
 
 def _sensor_camera(sensor, i: int, p: Path, resolution) -> Camera:
@@ -187,7 +199,7 @@ def scene_views(scene, path: str | os.PathLike, cfg: SceneConfig, test_every: in
     """Training and held-out cameras for ``scene`` (see the module docstring)."""
     if cfg.rig not in RIGS:
         raise ValueError(f"unknown camera rig {cfg.rig!r} (expected one of {', '.join(RIGS)})")
-    defaults = _sensor_defaults(scene)
+    defaults = _sensor_defaults(scene, Path(path), cfg)
     spp = cfg.spp or defaults.get("spp") or FALLBACK_SPP
     if spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")

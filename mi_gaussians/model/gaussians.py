@@ -88,9 +88,10 @@ class Gaussians:
     # ---------------------------------------------------------------- I/O and initialization
     @classmethod
     def load_ply(cls, path: str | os.PathLike) -> "Gaussians":
+        """A 3DGS PLY as a model to render: NaN/Inf values and colours that would render Inf are refused."""
         from .ply import read_ply
 
-        return cls.from_numpy(**read_ply(path))
+        return cls.from_numpy(**read_ply(path, renderable=True))
 
     def save_ply(self, path: str | os.PathLike) -> None:
         from .ply import write_ply

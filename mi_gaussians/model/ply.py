@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..conventions import sh_channel_major_to_coeff_major, sh_coeff_count, sh_coeff_major_to_channel_major
+from ..conventions import MAX_ABS_SH_COEFFICIENT, sh_channel_major_to_coeff_major, sh_coeff_count, sh_coeff_major_to_channel_major
 from ..io_utils import atomic_path
 
 #: PLY scalar type names -> NumPy type codes (the official names and the common sized aliases).
@@ -331,7 +331,19 @@ def _read_ascii_vertices(f, header: PlyHeader, vertex: PlyElement, path) -> np.n
     return out
 
 
-def read_ply(path: str | os.PathLike, *, allow_nonfinite: bool = False) -> dict[str, np.ndarray]:
+def _check_colour_range(path, cols: dict, groups: dict) -> None:
+    """Refuse colour coefficients beyond ``MAX_ABS_SH_COEFFICIENT`` (they render Inf pixels), naming the property."""
+    for key in ("sh_dc", "f_rest"):
+        a = np.abs(cols[key])
+        if a.size == 0 or a.max() <= MAX_ABS_SH_COEFFICIENT:
+            continue
+        j = int(np.argmax(a.max(axis=0)))
+        count = int((a > MAX_ABS_SH_COEFFICIENT).sum())
+        raise PLYError(path, f"{count} colour coefficient{'s' if count > 1 else ''} beyond +-{MAX_ABS_SH_COEFFICIENT:g} "
+                             f"(largest {a[:, j].max():g} in {groups[key][j]!r}); colours that large render as Inf")
+
+
+def read_ply(path: str | os.PathLike, *, allow_nonfinite: bool = False, renderable: bool = False) -> dict[str, np.ndarray]:
     """Read a 3DGS PLY into raw float32 arrays, keyed like ``Gaussians.from_numpy``.
 
     Returns ``means`` (N, 3), ``scales`` (N, 3), ``rotations`` (N, 4) wxyz, ``opacities`` (N,), ``sh_dc`` (N, 3),
@@ -341,7 +353,8 @@ def read_ply(path: str | os.PathLike, *, allow_nonfinite: bool = False) -> dict[
     Raises :class:`PLYError` (one line, starting with the path) for: not a PLY file, unsupported format or type,
     no ``vertex`` element, a missing attribute (named), an ``f_rest`` count other than 0/9/24/45, a truncated file or
     a vertex count that does not match the data, and -- unless ``allow_nonfinite`` -- NaN or Inf values (per
-    attribute, with counts)."""
+    attribute, with counts); with ``renderable`` (as :meth:`Gaussians.load_ply` asks) also colour coefficients beyond
+    ``MAX_ABS_SH_COEFFICIENT``, which render Inf pixels. Without it every finite float32 is read bit for bit."""
     try:
         with open(path, "rb") as f:
             header = _parse_header(f, path)
@@ -386,6 +399,8 @@ def read_ply(path: str | os.PathLike, *, allow_nonfinite: bool = False) -> dict[
         if problems:
             shown = problems[:6] + ([f"... ({len(problems) - 6} more properties)"] if len(problems) > 6 else [])
             raise PLYError(path, "non-finite values (after conversion to float32): " + ", ".join(shown))
+    if renderable:
+        _check_colour_range(path, cols, groups)
 
     return {
         "means": cols["means"],
