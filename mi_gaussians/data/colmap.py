@@ -105,8 +105,10 @@ def _model_extension(model_dir: Path) -> str:
 
 
 def quaternion_to_matrix(q) -> np.ndarray:
-    """Rotation matrix of the quaternion (w, x, y, z), normalised first (as COLMAP's reader does)."""
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    """Rotation matrix of the non-zero quaternion (w, x, y, z), normalised first (as COLMAP's reader does)."""
+    q = np.asarray(q, dtype=np.float64)
+    q = q / np.abs(q).max()             # first to a largest component of 1: the norm neither overflows nor underflows
+    w, x, y, z = q / np.linalg.norm(q)
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
@@ -130,7 +132,7 @@ def _image(where: str, iid: int, q, t, cid: int, name: str, cameras: dict) -> Co
                          f"(cameras: {', '.join(map(str, sorted(cameras)[:10]))})")
     if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))):
         raise ValueError(f"{where}: image {name!r} has a non-finite pose")
-    if not np.linalg.norm(q) > 0:
+    if not np.any(np.asarray(q) != 0):
         raise ValueError(f"{where}: image {name!r} has a zero rotation quaternion")
     w2c = np.eye(4)
     w2c[:3, :3] = quaternion_to_matrix(q)
@@ -384,7 +386,10 @@ def read_model(model_dir: str | os.PathLike, with_points: bool = True) -> Colmap
     rgb = np.zeros((0, 3), np.float32)
     if with_points:
         xyz, rgb = (_read_points_bin if binary else _read_points_text)(pts_file)
-        if not np.all(np.isfinite(xyz)):
-            raise ValueError(f"{pts_file}: non-finite point coordinates")
-        xyz, rgb = xyz.astype(np.float32), rgb / np.float32(255.0)
+        with np.errstate(over="ignore", invalid="ignore"):
+            xyz32 = xyz.astype(np.float32)
+        if not np.all(np.isfinite(xyz32)):
+            bad = int((~np.all(np.isfinite(xyz32), axis=1)).sum())
+            raise ValueError(f"{pts_file}: {bad} point(s) with coordinates that are not finite in float32")
+        xyz, rgb = xyz32, rgb / np.float32(255.0)
     return ColmapModel(model_dir, ext, cameras, images, xyz, rgb)

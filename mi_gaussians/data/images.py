@@ -267,17 +267,25 @@ class ImageLoader:
         return np.ascontiguousarray(img[..., :3]), alpha
 
 
+def _is_file(p: Path) -> bool:
+    """``p.is_file()``, False also for names the OS cannot even look up (too long, NUL bytes)."""
+    try:
+        return p.is_file()
+    except (OSError, ValueError):
+        return False
+
+
 def resolve_image_file(base: Path, file_path: str) -> tuple[Path, bool]:
     """Resolve a transforms.json ``file_path`` (with or without extension) against ``base``.
 
     Returns (path, exists); when nothing exists, the path is the one the caller should name in an error."""
     p = (base / file_path)
-    if p.suffix in IMAGE_EXTENSIONS and p.is_file():
+    if p.suffix in IMAGE_EXTENSIONS and _is_file(p):
         return p, True
     for ext in IMAGE_EXTENSIONS:
         q = p.with_name(p.name + ext)
-        if q.is_file():
+        if _is_file(q):
             return q, True
-    if p.is_file():
+    if _is_file(p):
         return p, True
     return (p if p.suffix.lower() in {e.lower() for e in IMAGE_EXTENSIONS} else p.with_name(p.name + ".png")), False
