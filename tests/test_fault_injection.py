@@ -1,0 +1,115 @@
+"""Fault injection: ``mi-gs optimize`` killed with SIGKILL again and again, at random moments and while it writes its
+checkpoint, resumed each time with ``--resume``. Every resume must succeed, the run must end with the model an
+uninterrupted run reaches (test PSNR within 0.5 dB) and no temporary file may survive.
+
+About 70 s on two cores (each restart imports Mitsuba and loads its kernels from Dr.Jit's cache). The kills are
+placed at random checkpoint steps spread over the run (a seeded generator), every other one the moment a temporary
+checkpoint file appears, so the test does not depend on the machine's speed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mi_gaussians.run_folder import _TEMPORARY
+from synthetic_dataset import make_blender_dataset
+
+EXE = str(Path(sys.executable).parent / "mi-gs")
+ITERATIONS = 400
+KILLS = 24
+ARGS = ["--iterations", str(ITERATIONS), "--white-background", "--sh-degree", "1", "--checkpoint-every", "2",
+        "--eval-every", "0", "--quiet", "--random-points", "3000"]
+
+
+def temporary_files(out: Path) -> list[Path]:
+    return [p for p in out.rglob("*") if _TEMPORARY.match(p.name)]
+
+
+def checkpoint_step(out: Path) -> int:
+    try:
+        with np.load(out / "checkpoints" / "ckpt.npz") as z:
+            return int(json.loads(bytes(z["meta"]).decode())["step"])
+    except (OSError, KeyError, ValueError, EOFError):
+        return 0
+
+
+def _start(data: Path, out: Path, resume: bool) -> subprocess.Popen:
+    cmd = [EXE, "optimize", str(data), "-o", str(out), *ARGS] + (["--resume"] if resume else [])
+    return subprocess.Popen(cmd, cwd=tempfile.gettempdir(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+
+def _kill_while_writing(proc: subprocess.Popen, out: Path, deadline: float) -> bool:
+    """Poll the checkpoint folder and kill as soon as a temporary checkpoint appears; True if one was seen."""
+    folder = out / "checkpoints"
+    while time.time() < deadline and proc.poll() is None:
+        if folder.is_dir() and any(_TEMPORARY.match(n) for n in os.listdir(folder)):
+            proc.send_signal(signal.SIGKILL)
+            return True
+        time.sleep(0.0005)
+    proc.send_signal(signal.SIGKILL)
+    return False
+
+
+def test_kill_9_at_random_moments_then_resume(tmp_path):
+    data = make_blender_dataset(tmp_path / "scene", n_train=12, n_test=3, size=48)
+    out = tmp_path / "killed"
+    rng = random.Random(1)
+    kills, mid_write, resumes, steps = 0, 0, 0, []
+    proc = _start(data, out, resume=False)
+    while True:
+        if kills >= KILLS:                       # enough: let the last resume finish
+            _, err = proc.communicate(timeout=900)
+            assert proc.returncode == 0, err.decode()[-3000:]
+            break
+        # a random checkpoint step ahead of the last one, spread so that the kills cover the whole run
+        current = checkpoint_step(out)
+        room = max(2, (ITERATIONS - 40 - current) * 2 // (KILLS - kills))
+        target = min(current + rng.randint(1, room), ITERATIONS - 40)
+        deadline = time.time() + 300
+        while time.time() < deadline and proc.poll() is None and checkpoint_step(out) < target:
+            time.sleep(0.005)
+        if proc.poll() is not None:              # finished before the kill: the run is complete
+            assert proc.returncode == 0, proc.stderr.read().decode()[-3000:]
+            break
+        if kills % 2:
+            saw = _kill_while_writing(proc, out, time.time() + 30)
+        else:
+            time.sleep(rng.uniform(0.0, 0.02))
+            proc.send_signal(signal.SIGKILL)
+            saw = False
+        proc.wait()
+        if proc.returncode != -signal.SIGKILL:   # it ended on its own before the signal arrived
+            assert proc.returncode == 0, proc.stderr.read().decode()[-3000:]
+            break
+        kills += 1
+        mid_write += bool(saw and temporary_files(out))
+        steps.append(checkpoint_step(out))
+        proc = _start(data, out, resume=True)
+        resumes += 1
+
+    assert kills >= 20, f"only {kills} kills before the run finished (checkpoint steps {steps})"
+    assert mid_write >= 1, "no kill landed while a checkpoint was being written"
+    assert steps == sorted(steps), f"a resume went back: {steps}"
+    assert steps[-1] > ITERATIONS // 2, f"the kills did not cover the run: {steps}"
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["iterations"] == ITERATIONS
+    assert not temporary_files(out), temporary_files(out)
+    assert not (out / ".mi-gs.lock").exists() or (out / ".mi-gs.lock").read_text().strip() == ""
+
+    res = subprocess.run([EXE, "optimize", str(data), "-o", str(tmp_path / "straight"), *ARGS],
+                         cwd=tempfile.gettempdir(), capture_output=True, text=True, timeout=900)
+    assert res.returncode == 0, res.stderr[-3000:]
+    straight = json.loads((tmp_path / "straight" / "metrics.json").read_text())
+    assert abs(metrics["mean"]["psnr"] - straight["mean"]["psnr"]) < 0.5, (metrics["mean"], straight["mean"])
+    print(f"{kills} kills ({mid_write} during a checkpoint write), {resumes} resumes; checkpoint steps {steps}; "
+          f"PSNR {metrics['mean']['psnr']:.2f} against {straight['mean']['psnr']:.2f} uninterrupted")
