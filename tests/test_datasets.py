@@ -742,3 +742,21 @@ def test_dataset_pickles(tmp_path):
     back = pickle.loads(pickle.dumps(ds))
     np.testing.assert_array_equal(back.train[0].load_image(), ds.train[0].load_image())
     assert back.extent == ds.extent
+
+
+def test_fingerprint_follows_content_and_lens(tmp_path):
+    """The resume fingerprint is stable across loads and changes with an image's bytes and with the lens distortion
+    alone (the undistorted pinhole intrinsics can stay the same when only k1 changes)."""
+    from mi_gaussians.data.dataset import fingerprint
+
+    root = copy_fixture("tiny_ngp", tmp_path)
+    first = fingerprint(load_dataset(root))
+    assert fingerprint(load_dataset(root)) == first
+    meta = json.loads((root / "transforms.json").read_text())
+    meta["k1"] = meta["k1"] + 1e-3
+    (root / "transforms.json").write_text(json.dumps(meta))
+    lens = fingerprint(load_dataset(root))
+    assert lens != first
+    img = sorted((root / "images").iterdir())[0]
+    Image.open(img).transpose(Image.Transpose.FLIP_LEFT_RIGHT).save(img)
+    assert fingerprint(load_dataset(root)) not in (first, lens)

@@ -395,8 +395,9 @@ def verify_images(views: list[View], progress: bool = False) -> None:
 
 
 def fingerprint(ds: Dataset) -> str:
-    """A content fingerprint of what a run trains on: every view's name, camera and image (and mask) file bytes, the
-    initial points, the background and the colour encoding (SHA-256, hex). A resumed run must see the same."""
+    """A content fingerprint of what a run trains on: every view's name, camera (and lens distortion) and image (and
+    mask) file bytes, the initial points, the background and the colour encoding (SHA-256, hex). A resumed run must
+    see the same."""
     import hashlib
 
     h = hashlib.sha256()
@@ -408,6 +409,11 @@ def fingerprint(ds: Dataset) -> str:
             h.update(f"{split}|{v.name}|{c.width}|{c.height}|".encode())
             h.update(np.array([c.fx, c.fy, c.cx, c.cy], np.float64).tobytes())
             h.update(np.asarray(c.world_to_camera, np.float64).tobytes())
+            und = getattr(v.loader, "undistorter", None)
+            if und is not None:     # the lens model the images are undistorted with (the pinhole can stay the same)
+                d = und.distorted
+                h.update(f"{und.model}|{d.width}|{d.height}|{v.loader.source_size}|".encode())
+                h.update(np.asarray(list(d.params), np.float64).tobytes())
             for path in (v.image_path, getattr(v.loader, "mask_path", None)):
                 if path is not None:
                     with open(path, "rb") as f:
