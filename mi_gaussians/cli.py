@@ -364,9 +364,15 @@ def _resumed_config(args, src: Path, out: Path, saved: dict):
     cfg = run_folder.saved_config(saved, out)
     given = _train_config(args, scene_file=_is_scene_file(src))
     differ = []
+    from .data.scene_file import parse_defines
+
+    def same(name: str) -> bool:
+        a, b = _field(cfg, name), _field(given, name)
+        return parse_defines(a) == parse_defines(b) if name == "scene.defines" else a == b   # -D order is free
+
     for option in sorted(args.explicit & set(_RUN_FIELDS)):
         for name in _RUN_FIELDS[option]:
-            if _field(cfg, name) != _field(given, name):
+            if not same(name):
                 differ.append(f"--{option.replace('_', '-')} gives {name} = {_field(given, name)!r}, the run has "
                               f"{_field(cfg, name)!r}")
     if differ:

@@ -461,3 +461,22 @@ def test_integrator_rejects_unknown_colour_space():
 
     with pytest.raises(Exception, match="color_space"):
         mi.load_dict({"type": "gaussian_splatting", "color_space": "aces"})
+
+
+def test_resume_compares_scene_parameters_as_a_mapping(tmp_path):
+    """``-D`` given again on --resume: the same parameters in another order continue the run; another value is
+    refused, naming the option."""
+    p = tmp_path / "param.xml"
+    write_scene(p, w=24, h=24, spp=4)
+    text = p.read_text().replace('<scene version="3.0.0">', '<scene version="3.0.0"><default name="sky" '
+                                 'value="0.5"/><default name="lamp" value="2"/>', 1)
+    p.write_text(text.replace('value="0.5, 0.55, 0.6"', 'value="$sky"').replace('name="irradiance" value="2"',
+                                                                             'name="irradiance" value="$lamp"'))
+    common = ["--views", 4, "--test-views", 1, "--init-points", 300, "--quiet", "-o", tmp_path / "run"]
+    res = run("optimize", p, "--iterations", 5, "-D", "sky=0.4", "-D", "lamp=3", *common)
+    assert res.returncode == 0, res.stderr
+    res = run("optimize", p, "--resume", "--iterations", 8, "-D", "lamp=3", "-D", "sky=0.4", *common)
+    assert res.returncode == 0, res.stderr
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["iterations"] == 8
+    assert_one_line_error(run("optimize", p, "--resume", "-D", "lamp=3", "-D", "sky=0.5", *common),
+                          "--define gives scene.defines")
