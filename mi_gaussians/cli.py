@@ -175,6 +175,23 @@ def cmd_info(args) -> int:
 
 
 # ---------------------------------------------------------------------------------------------------- render
+def _model_raster_config(ply: Path, antialiased: bool | None):
+    """How to render ``ply``: as the run whose ``config.json`` sits beside it was trained (a PLY records nothing about
+    anti-aliasing), unless ``--antialiased`` / ``--no-antialiased`` says otherwise; defaults for a lone model."""
+    import dataclasses
+
+    from . import run_folder
+    from .config import RasterConfig
+
+    cfg = RasterConfig()
+    if (ply.parent / run_folder.CONFIG).is_file():
+        try:
+            cfg = run_folder.saved_config(run_folder.read_saved(ply.parent, ""), ply.parent).raster
+        except ValueError:      # another tool's config.json: not a run record
+            pass
+    return cfg if antialiased is None else dataclasses.replace(cfg, antialiased=antialiased)
+
+
 def _render_gaussians_views(args, views, color_space: str, out_paths) -> None:
     import numpy as np
     from tqdm import tqdm
@@ -185,8 +202,9 @@ def _render_gaussians_views(args, views, color_space: str, out_paths) -> None:
 
     g = Gaussians.load_ply(args.input)
     bg = _background(args.background)
+    cfg = _model_raster_config(Path(args.input), args.antialiased)
     for (name, cam), outs in tqdm(list(zip(views, out_paths)), desc="render", unit="view", disable=len(views) < 2):
-        out = render(g, cam, background=bg, sh_degree=args.sh_degree)
+        out = render(g, cam, background=bg, sh_degree=args.sh_degree, cfg=cfg)
         rgb = np.array(out.rgb, dtype=np.float32)
         if args.alpha:
             rgb = np.concatenate([rgb, np.array(out.alpha, dtype=np.float32)[..., None]], axis=-1)
@@ -309,7 +327,7 @@ def _data_resolution_and_scene(args, scene_file: bool, default_resolution: int):
 def _train_config(args, scene_file: bool = False):
     import dataclasses
 
-    from .config import DataConfig, DensifyConfig, OptimConfig, TrainConfig
+    from .config import DataConfig, DensifyConfig, OptimConfig, RasterConfig, TrainConfig
 
     d, o, dn = DataConfig(), OptimConfig(), DensifyConfig()
     resolution, scene = _data_resolution_and_scene(args, scene_file, d.resolution)
@@ -331,7 +349,8 @@ def _train_config(args, scene_file: bool = False):
         dens_kw["densify_until_iter"] = min(dn.densify_until_iter, args.iterations // 2)
     densify = dataclasses.replace(dn, **dens_kw)
     save = tuple(i for i in TrainConfig().save_iterations if i < optim.iterations)
-    return TrainConfig(data=data, optim=optim, densify=densify, scene=scene, seed=args.seed,
+    raster = dataclasses.replace(RasterConfig(), antialiased=args.antialiased)
+    return TrainConfig(data=data, optim=optim, densify=densify, scene=scene, raster=raster, seed=args.seed,
                        checkpoint_every=args.checkpoint_every, eval_every=args.eval_every, save_iterations=save)
 
 
@@ -344,7 +363,7 @@ _RUN_FIELDS = {
     "random_points": ("data.random_points",), "rig": ("scene.rig",), "views": ("scene.views",),
     "test_views": ("scene.test_views",), "radius": ("scene.radius",), "fov": ("scene.fov",), "up": ("scene.up",),
     "spp": ("scene.spp",), "linear": ("scene.linear",), "init": ("scene.init",),
-    "init_points": ("scene.init_points",), "define": ("scene.defines",),
+    "init_points": ("scene.init_points",), "define": ("scene.defines",), "antialiased": ("raster.antialiased",),
 }
 
 
@@ -469,7 +488,8 @@ def _optimize_locked(args, src: Path, out: Path, cfg, saved) -> int:
         from .plugins.scene_xml import write_gaussian_scene
 
         cam = (ds.test or ds.train)[0].camera
-        write_gaussian_scene(out / run_folder.GAUSSIAN_SCENE, run_folder.MODEL, cam, ds.color_space, ds.background)
+        write_gaussian_scene(out / run_folder.GAUSSIAN_SCENE, run_folder.MODEL, cam, ds.color_space, ds.background,
+                             antialiased=cfg.raster.antialiased)
     print(json.dumps({"output": str(out), **metrics["mean"], "gaussians": metrics["gaussians"],
                       "training_seconds": metrics["training_seconds"]}, indent=2))
     return 0
@@ -592,6 +612,9 @@ def _add_render(sub) -> None:
     s.add_argument("--color-space", choices=("srgb", "linear"), default="srgb",
                    help="what the model's colours are (3DGS models trained on photos: srgb)")
     s.add_argument("--alpha", action="store_true", help="write an alpha channel")
+    s.add_argument("--antialiased", action=argparse.BooleanOptionalAction, default=None,
+                   help="render with Mip-Splatting's 2D filter (default: as the run whose config.json sits beside "
+                        "the .ply was trained, else off)")
     s.add_argument("--spp", type=positive_int, default=None, help="samples per pixel (scene .xml only)")
     s.add_argument("--sensor", type=non_negative_int, default=0, help="sensor index (scene .xml only)")
     _add_define(s, "set a scene parameter (scene .xml only), as mitsuba -D; repeatable")
@@ -650,6 +673,9 @@ def _add_optimize(sub) -> None:
     s.add_argument("--background", type=finite_float, nargs="+", default=None,
                    help="background colour (1 or 3 values)")
     s.add_argument("--random-background", action="store_true", help="random background colour per iteration")
+    s.add_argument("--antialiased", action="store_true",
+                   help="Mip-Splatting's 2D filter (gsplat's antialiased mode); the model must then be rendered "
+                        "with it, which config.json and gaussians.xml record")
     s.add_argument("--sh-degree", type=sh_degree, default=None, help=f"maximum SH degree (default {o.sh_degree})")
     s.add_argument("--test-every", type=non_negative_int, default=d.test_every,
                    help="hold out every N-th image (COLMAP/ngp; 0: none)")

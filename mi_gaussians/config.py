@@ -42,6 +42,8 @@ class RasterConfig:
     alpha_min: float = 1.0 / 255.0           # skip a Gaussian whose alpha is below this
     alpha_max: float = 0.99                  # clamp alpha
     transmittance_min: float = 1e-4          # stop before a Gaussian that would bring T below this
+    antialiased: bool = False                # Mip-Splatting's 2D filter (gsplat's "antialiased" mode, the 2024
+                                             # reference's --antialiasing): opacity times sqrt(det(S) / det(S + 0.3 I))
 
 
 @dataclass(frozen=True)

@@ -5,4 +5,5 @@ the code that writes scenes using it (:mod:`.scene_xml`, which does not)."""
 
 INTEGRATOR = "gaussian_splatting"
 BACKGROUND, SH_DEGREE, DEPTH_AOV, COLOR_SPACE = "background", "sh_degree", "depth_aov", "color_space"
+ANTIALIASED = "antialiased"
 COLOR_SPACES = ("linear", "srgb")

@@ -17,7 +17,7 @@ import numpy as np
 from mi_gaussians.data.camera import Camera
 from mi_gaussians.io_utils import atomic_write_text
 
-from .contract import BACKGROUND, COLOR_SPACE, COLOR_SPACES, INTEGRATOR
+from .contract import ANTIALIASED, BACKGROUND, COLOR_SPACE, COLOR_SPACES, INTEGRATOR
 
 _INDENT = "    "
 
@@ -61,12 +61,16 @@ def _plugin(tag: str, d: dict, depth: int, plugin_id: str | None = None) -> list
     return [f"{pad}<{tag} {attrs}>", *body, f"{pad}</{tag}>"]
 
 
-def integrator_dict(color_space: str = "linear", background=(0.0, 0.0, 0.0)) -> dict:
-    """The ``gaussian_splatting`` integrator as a ``mi.load_dict`` dictionary (background as an RGB triple)."""
+def integrator_dict(color_space: str = "linear", background=(0.0, 0.0, 0.0), antialiased: bool = False) -> dict:
+    """The ``gaussian_splatting`` integrator as a ``mi.load_dict`` dictionary (background as an RGB triple;
+    ``antialiased`` only when set, so scenes of default models stay as they were)."""
     if color_space not in COLOR_SPACES:
         raise ValueError(f"color_space must be one of {', '.join(COLOR_SPACES)}, got {color_space!r}")
-    return {"type": INTEGRATOR, COLOR_SPACE: color_space,
-            BACKGROUND: tuple(float(b) for b in np.asarray(background).reshape(3))}
+    d = {"type": INTEGRATOR, COLOR_SPACE: color_space,
+         BACKGROUND: tuple(float(b) for b in np.asarray(background).reshape(3))}
+    if antialiased:
+        d[ANTIALIASED] = True
+    return d
 
 
 def _header(path: Path, cam: Camera, color_space: str) -> str:
@@ -79,10 +83,10 @@ def _header(path: Path, cam: Camera, color_space: str) -> str:
 
 
 def gaussian_scene_xml(path: str | os.PathLike, ply: str, cam: Camera, color_space: str = "linear",
-                       background=(0.0, 0.0, 0.0)) -> str:
+                       background=(0.0, 0.0, 0.0), antialiased: bool = False) -> str:
     """The text of :func:`write_gaussian_scene`'s file. The integrator's type is the parameter ``$integrator``
     (default ``gaussian_splatting``), so ``-Dintegrator=volprim_rf_basic`` switches to Mitsuba's ray tracer."""
-    integrator = {**integrator_dict(color_space, background), "type": "$integrator"}
+    integrator = {**integrator_dict(color_space, background, antialiased), "type": "$integrator"}
     lines = [_header(Path(path), cam, color_space), '<scene version="3.0.0">',
              f'{_INDENT}<default name="integrator" value="{INTEGRATOR}"/>', ""]
     lines += _plugin("integrator", integrator, 1) + [""]
@@ -92,7 +96,7 @@ def gaussian_scene_xml(path: str | os.PathLike, ply: str, cam: Camera, color_spa
 
 
 def write_gaussian_scene(path: str | os.PathLike, ply: str, cam: Camera, color_space: str = "linear",
-                         background=(0.0, 0.0, 0.0)) -> None:
+                         background=(0.0, 0.0, 0.0), antialiased: bool = False) -> None:
     """A Mitsuba scene file that renders the Gaussians of ``ply`` (a path relative to the scene file's folder) with
     the ``gaussian_splatting`` integrator from camera ``cam`` (written atomically)."""
-    atomic_write_text(Path(path), gaussian_scene_xml(path, ply, cam, color_space, background))
+    atomic_write_text(Path(path), gaussian_scene_xml(path, ply, cam, color_space, background, antialiased))

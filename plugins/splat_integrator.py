@@ -13,7 +13,7 @@ from mi_gaussians.imwrite import SRGB_DECODE_THRESHOLD, SRGB_GAMMA, SRGB_OFFSET,
 from mi_gaussians.raster.projection import GaussianArrays
 from mi_gaussians.raster.rasterize import render_arrays
 
-from .contract import BACKGROUND, COLOR_SPACE, COLOR_SPACES, DEPTH_AOV, INTEGRATOR, SH_DEGREE
+from .contract import ANTIALIASED, BACKGROUND, COLOR_SPACE, COLOR_SPACES, DEPTH_AOV, INTEGRATOR, SH_DEGREE
 
 
 def gaussians_from_ellipsoids(shape, max_degree: int = 3) -> GaussianArrays:
@@ -95,6 +95,12 @@ class GaussianSplattingIntegrator(mi.CppADIntegrator):
          photographs, and ``mi-gs optimize scene.xml`` models without ``--linear``), which are decoded to linear
          radiance after blending (background included) so that the film holds radiance. (Default: ``linear``)
 
+     * - antialiased
+       - |bool|
+       - Mip-Splatting's 2D filter (gsplat's ``antialiased`` mode): each Gaussian's opacity is scaled by
+         sqrt(det(S) / det(S + 0.3 I)) of its 2D covariance S. A model trained with ``mi-gs optimize --antialiased``
+         must be rendered with it (its ``gaussians.xml`` says so). (Default: false)
+
     Rasterizes the 3D Gaussians of every ``ellipsoids`` shape in the scene (a 3DGS ``point_cloud.ply`` loaded by
     Mitsuba's own ``ellipsoids`` shape) with the tile-sorted, front-to-back alpha blending of Kerbl et al. 2023
     (16 x 16 tiles, EWA projection with the 0.3 low-pass dilation, alpha <= 0.99, early termination at T < 1e-4).
@@ -138,7 +144,7 @@ class GaussianSplattingIntegrator(mi.CppADIntegrator):
         self.color_space = str(props.get(COLOR_SPACE, "linear"))
         if self.color_space not in COLOR_SPACES:
             raise ValueError(f"gaussian_splatting: color_space must be 'linear' or 'srgb', got {self.color_space!r}")
-        self.cfg = RasterConfig()
+        self.cfg = RasterConfig(antialiased=bool(props.get(ANTIALIASED, False)))
 
     # ------------------------------------------------------------------ helpers
     def _gaussians(self, scene) -> GaussianArrays:

@@ -7,14 +7,15 @@ import mitsuba as mi
 import numpy as np
 
 import mi_gaussians as mig
+from mi_gaussians.config import RasterConfig
 from mi_gaussians.raster.rasterize import render
 
 NAMES = ("means", "scales", "rotations", "opacities", "sh_dc", "sh_rest")
 
 
-def render_numpy(params: dict, cam, background=(0.0, 0.0, 0.0), sh_degree=None) -> dict:
+def render_numpy(params: dict, cam, background=(0.0, 0.0, 0.0), sh_degree=None, antialiased=False) -> dict:
     g = mig.Gaussians.from_numpy(**params)
-    out = render(g, cam, background=background, sh_degree=sh_degree)
+    out = render(g, cam, background=background, sh_degree=sh_degree, cfg=RasterConfig(antialiased=antialiased))
     return {"rgb": np.array(out.rgb, dtype=np.float64).reshape(cam.height, cam.width, 3),
             "alpha": np.array(out.alpha, dtype=np.float64).reshape(cam.height, cam.width),
             "depth": np.array(out.depth, dtype=np.float64).reshape(cam.height, cam.width),
@@ -33,12 +34,12 @@ def weighted_loss(out, weights: dict):
             + dr.sum(out.depth.array * mi.Float(weights["depth"].astype(np.float32).ravel())))
 
 
-def gradients_numpy(params: dict, cam, weights: dict, background=(0.0, 0.0, 0.0), sh_degree=None):
+def gradients_numpy(params: dict, cam, weights: dict, background=(0.0, 0.0, 0.0), sh_degree=None, antialiased=False):
     """Our gradients of the weighted loss w.r.t. every raw parameter, plus the render output."""
     g = mig.Gaussians.from_numpy(**params)
     for k in NAMES:
         dr.enable_grad(getattr(g, k))
-    out = render(g, cam, background=background, sh_degree=sh_degree)
+    out = render(g, cam, background=background, sh_degree=sh_degree, cfg=RasterConfig(antialiased=antialiased))
     dr.backward(weighted_loss(out, weights))
     grads = {k: (np.array(dr.grad(getattr(g, k)), dtype=np.float64).reshape(params[k].shape) if params[k].size
                  else np.zeros(params[k].shape)) for k in NAMES}

@@ -17,6 +17,7 @@ Per Gaussian (raw parameters -> screen-space quantities)
     conic = Sigma2D^-1 = (c, -b, a) / det
     mean2D = (fx t_x / t_z + cx, fy t_y / t_z + cy)      (unclamped t; pixel (i, j) is sampled at (i + 0.5, j + 0.5))
     opacity = sigmoid(logit);  depth = t_z
+    anti-aliased (antialiased=True): opacity *= sqrt(max(det(S) / det, 0)) with S = Sigma2D - 0.3 I (undilated)
     colour = max(SH(normalize(mean - camera centre)) + 0.5, 0) with the reference's constants and signs
 Per pixel p (front to back over the non-culled Gaussians, sorted by depth with a STABLE sort: ties keep index order)
     d = mean2D - p;  power = -0.5 (conic_a dx^2 + conic_c dy^2) - conic_b dx dy;  skip when power > 0
@@ -27,9 +28,10 @@ Outputs
     rgb = C + T background;  alpha = 1 - T;  depth = D / (1 - T) where 1 - T > 0, else 0 (expected depth)
 
 Public API
-    render_reference(params, camera, background=(0, 0, 0), sh_degree=None, dtype=np.float64) -> dict
+    render_reference(params, camera, background=(0, 0, 0), sh_degree=None, dtype=np.float64, antialiased=False) -> dict
     fd_gradients(params, camera, weights, background=(0, 0, 0), sh_degree=None, eps=1e-6, names=None,
-                 index_subset=None, return_unreliable=False) -> dict name -> array (or (grads, unreliable))
+                 index_subset=None, return_unreliable=False, antialiased=False) -> dict name -> array (or (grads,
+                 unreliable))
     plus the building blocks (quaternion_to_matrix, covariance_3d, sh_basis, sh_to_color, preprocess, composite,
     composite_batch, depth_order, render_losses).
 """
@@ -145,7 +147,7 @@ def sh_to_color(sh_dc: np.ndarray, sh_rest: np.ndarray, dirs: np.ndarray, degree
 
 
 # ---------------------------------------------------------------------------------------------- per Gaussian
-def preprocess(params: dict, camera, sh_degree: int | None = None, dtype=np.float64) -> dict:
+def preprocess(params: dict, camera, sh_degree: int | None = None, dtype=np.float64, antialiased: bool = False) -> dict:
     """Screen-space quantities of every Gaussian (culled ones included, with ``culled`` True; their values are junk)."""
     dt = np.dtype(dtype)
     p = as_params(params, dt)
@@ -178,6 +180,7 @@ def preprocess(params: dict, camera, sh_degree: int | None = None, dtype=np.floa
         J[:, 1, 2] = -fy * vc / tz
         JW = J @ Wr
         cov2d = JW @ Sigma @ np.swapaxes(JW, -1, -2)
+        det_undilated = cov2d[:, 0, 0] * cov2d[:, 1, 1] - cov2d[:, 0, 1] * cov2d[:, 1, 0]
         cov2d[:, 0, 0] += dt.type(DILATION)
         cov2d[:, 1, 1] += dt.type(DILATION)
         a, b, c = cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]
@@ -190,6 +193,10 @@ def preprocess(params: dict, camera, sh_degree: int | None = None, dtype=np.floa
     with np.errstate(divide="ignore", invalid="ignore"):
         dirs = dirs / np.sqrt(np.sum(dirs * dirs, axis=-1))[:, None]
     raw_colors = sh_to_color(p["sh_dc"], p["sh_rest"], dirs, deg, clamp=False)
+    opacities = sigmoid(p["opacities"])
+    if antialiased:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            opacities = opacities * np.sqrt(np.maximum(np.nan_to_num(det_undilated / det), 0))
     return {
         "n": n,
         "sh_degree": deg,
@@ -203,7 +210,7 @@ def preprocess(params: dict, camera, sh_degree: int | None = None, dtype=np.floa
         "det": det,
         "conics": conic,
         "means2d": means2d,
-        "opacities": sigmoid(p["opacities"]),
+        "opacities": opacities,
         "colors": np.maximum(raw_colors, 0),
         "color_clamped": raw_colors < 0,
         "dirs": dirs,
@@ -331,7 +338,7 @@ def depth_gaps(pre: dict) -> np.ndarray:
 
 
 def render_reference(params: dict, camera, background=(0.0, 0.0, 0.0), sh_degree: int | None = None,
-                     dtype=np.float64, record: bool = False) -> dict:
+                     dtype=np.float64, record: bool = False, antialiased: bool = False) -> dict:
     """Render with the reference model. Returns a dict:
 
     rgb (H, W, 3), alpha (H, W) = 1 - T, depth (H, W) expected depth (0 where alpha == 0), final_T (H, W),
@@ -345,7 +352,7 @@ def render_reference(params: dict, camera, background=(0.0, 0.0, 0.0), sh_degree
     With record=True also contrib_mask (N, H*W) and alpha_clamp_mask (N, H*W) (alpha hit the 0.99 clamp).
     All floating arrays have ``dtype`` (float64 by default; float32 mimics a float32 implementation).
     """
-    pre = preprocess(params, camera, sh_degree=sh_degree, dtype=dtype)
+    pre = preprocess(params, camera, sh_degree=sh_degree, dtype=dtype, antialiased=antialiased)
     out = composite(pre, camera, background=background, dtype=dtype, record=record)
     for k in ("means2d", "culled", "depths", "near_margin", "conics", "cov2d", "opacities", "colors",
               "color_clamped", "guard_clamped"):
@@ -373,11 +380,12 @@ def _signature(out: dict, b: int, pre: dict) -> tuple:
 
 
 def render_losses(param_list: list, camera, weights: dict, background=(0.0, 0.0, 0.0), sh_degree: int | None = None,
-                  record: bool = False, batch: int = 16):
+                  record: bool = False, batch: int = 16, antialiased: bool = False):
     """``weighted_loss`` of each parameter set (float64), rendered in batches; with record, also their signatures."""
     losses, sigs = [], []
     for s0 in range(0, len(param_list), batch):
-        pres = [preprocess(p, camera, sh_degree=sh_degree, dtype=np.float64) for p in param_list[s0: s0 + batch]]
+        pres = [preprocess(p, camera, sh_degree=sh_degree, dtype=np.float64, antialiased=antialiased)
+                for p in param_list[s0: s0 + batch]]
         out = composite_batch(pres, camera, background=background, dtype=np.float64, record=record, margins=False)
         for b, pre in enumerate(pres):
             losses.append(weighted_loss({k: out[k][b] for k in OUTPUT_NAMES}, weights))
@@ -387,7 +395,8 @@ def render_losses(param_list: list, camera, weights: dict, background=(0.0, 0.0,
 
 
 def fd_gradients(params: dict, camera, weights: dict, background=(0.0, 0.0, 0.0), sh_degree: int | None = None,
-                 eps: float = 1e-6, names=None, index_subset=None, return_unreliable: bool = False):
+                 eps: float = 1e-6, names=None, index_subset=None, return_unreliable: bool = False,
+                 antialiased: bool = False):
     """Central finite differences (float64) of ``weighted_loss`` w.r.t. every raw parameter entry.
 
     ``names``: parameter names to differentiate (default: all of PARAM_NAMES). ``index_subset``: Gaussian indices to
@@ -419,7 +428,7 @@ def fd_gradients(params: dict, camera, weights: dict, background=(0.0, 0.0, 0.0)
                     plist.append(q)
                 keys.append((name, key))
     losses, sigs = render_losses(plist, camera, weights, background=background, sh_degree=sh_degree,
-                                 record=return_unreliable)
+                                 record=return_unreliable, antialiased=antialiased)
 
     grads = {name: np.full(base[name].shape, np.nan) for name in names}
     unreliable = {name: np.zeros(base[name].shape, bool) for name in names}

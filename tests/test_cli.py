@@ -170,3 +170,45 @@ def test_run_folder(tmp_path):
     assert rf.references_root(out, None) == out / "references" and rf.references_root(out, "c") == Path("c")
     with pytest.raises(ValueError, match="nothing to resume"):
         rf.read_saved(tmp_path / "empty", "nothing to resume")
+
+
+def _read_exr(path: Path) -> np.ndarray:
+    import OpenEXR
+
+    with OpenEXR.File(str(path)) as f:
+        return np.asarray(next(iter(f.parts[0].channels.values())).pixels, dtype=np.float64)
+
+
+def test_antialiased_run_is_recorded_and_rendered_that_way(tmp_path):
+    """--antialiased reaches the run's config.json; `mi-gs render RUN/point_cloud.ply` then renders anti-aliased by
+    itself (a PLY records nothing), --no-antialiased overrides it, a lone copy of the PLY renders plain, and
+    --resume refuses to switch the mode."""
+    from mi_gaussians.config import RasterConfig
+
+    data = ROOT / "tests" / "data" / "tiny_blender"
+    out = tmp_path / "run"
+    res = run("optimize", data, "-o", out, "--iterations", 30, "--antialiased", "--quiet", "--random-points", 400,
+              "--eval-every", 0)
+    assert res.returncode == 0, res.stderr
+    assert json.loads((out / "config.json").read_text())["train"]["raster"]["antialiased"] is True
+    cam = mig.load_dataset(data).test[0].camera
+    cam.to_json(tmp_path / "cam.json")
+    ply = out / "point_cloud.ply"
+    g = mig.Gaussians.load_ply(ply)
+    want = {aa: srgb_to_linear(np.array(mig.render(g, cam, cfg=RasterConfig(antialiased=aa)).rgb))
+            for aa in (True, False)}
+    assert np.abs(want[True] - want[False]).max() > 1e-3
+    shutil.copy(ply, tmp_path / "lone.ply")
+    for src, flags, aa in ((ply, (), True), (ply, ("--no-antialiased",), False), (tmp_path / "lone.ply", (), False),
+                           (tmp_path / "lone.ply", ("--antialiased",), True)):
+        target = tmp_path / f"{src.stem}{len(flags)}{aa}.exr"
+        res = run("render", src, "--camera", tmp_path / "cam.json", "-o", target, *flags)
+        assert res.returncode == 0, res.stderr
+        np.testing.assert_allclose(_read_exr(target), want[aa], atol=1e-5, err_msg=f"{src.name} {flags}")
+    res = run("optimize", data, "-o", out, "--resume", "--iterations", 31, "--quiet")     # keeps the run's mode
+    assert res.returncode == 0, res.stderr
+    assert json.loads((out / "config.json").read_text())["train"]["raster"]["antialiased"] is True
+    plain = tmp_path / "plain"
+    assert run("optimize", data, "-o", plain, "--iterations", 5, "--quiet", "--random-points", 100).returncode == 0
+    assert_one_line_error(run("optimize", data, "-o", plain, "--resume", "--antialiased"),
+                          "--antialiased gives raster.antialiased = True, the run has False")

@@ -57,6 +57,29 @@ def test_mi_render_equals_library_render(model):
     np.testing.assert_allclose(img[..., 4], np.array(out.depth), rtol=1e-4, atol=1e-4)
 
 
+def test_antialiased_parameter(model, tmp_path):
+    """``antialiased=true`` renders the library's anti-aliased image, and the scene file written for such a model
+    (gaussians.xml) carries the parameter; a default model's file does not mention it."""
+    from mi_gaussians.config import RasterConfig
+    from mi_gaussians.plugins.scene_xml import gaussian_scene_xml
+
+    path, params, cam = model
+    params["scales"] = params["scales"] - 2.0        # small footprints: the compensation matters
+    write_ply(path, **params)
+    scene = mi.load_dict(_scene_dict(path, cam, {"type": "gaussian_splatting", "antialiased": True}))
+    img = np.array(mi.render(scene))
+    g = mig.Gaussians.load_ply(path)
+    aa = np.array(mig.render(g, cam, cfg=RasterConfig(antialiased=True)).rgb)
+    plain = np.array(mig.render(g, cam).rgb)
+    np.testing.assert_allclose(img, aa, atol=2e-5)
+    assert np.abs(aa - plain).max() > 0.05
+    xml = gaussian_scene_xml(tmp_path / "g.xml", "model.ply", cam, antialiased=True)
+    assert '<boolean name="antialiased" value="true"/>' in xml
+    (tmp_path / "g.xml").write_text(xml.replace("model.ply", str(path)))
+    np.testing.assert_allclose(np.array(mi.render(mi.load_file(str(tmp_path / "g.xml"))))[..., :3], aa, atol=2e-5)
+    assert "antialiased" not in gaussian_scene_xml(tmp_path / "g.xml", "model.ply", cam)
+
+
 def test_mi_render_is_differentiable(model):
     path, _, cam = model
     scene = mi.load_dict(_scene_dict(path, cam))

@@ -9,6 +9,12 @@ Guard band: the reference clamps ``t_x / t_z`` to ``1.3 * tan(fov_x / 2)``, whic
 We clamp the projected mean to the pixel interval ``[-0.15 W, 1.15 W]`` (and likewise in y); for ``cx = W / 2`` this is
 the same interval, and it stays 30 % beyond the image edge on both sides for an off-centre principal point.
 
+Anti-aliasing (``RasterConfig.antialiased``, Mip-Splatting's 2D filter as gsplat's ``antialiased`` mode and the
+2024 reference's ``--antialiasing``): the dilation stays a low-pass filter of the footprint, and the opacity is scaled
+by ``sqrt(det(S) / det(S + dilation I))`` with ``S`` the undilated 2D covariance, so a Gaussian much smaller than a
+pixel keeps its energy instead of growing into a 0.3-pixel blob of full opacity. Everything downstream (footprint,
+blending) sees the scaled opacity.
+
 Footprint: a Gaussian of opacity ``o`` reaches alpha >= 1/255 exactly where ``d^T conic d <= 2 ln(255 o)``; the
 axis-aligned box of that ellipse is ``|dx| <= sqrt(2 ln(255 o) * Sigma_xx)`` and ``|dy| <= sqrt(2 ln(255 o) * Sigma_yy)``.
 Covering that box (with a tiny safety margin) makes the image independent of the tile grid, unlike the reference's
@@ -74,7 +80,7 @@ class Projected:
 
     mean2d: "mi.Point2f"      # pixel coordinates of the projected mean
     conic: "mi.Vector3f"      # inverse of the dilated 2D covariance: (a, b, c) of [[a, b], [b, c]]
-    opacity: "mi.Float"       # sigmoid(opacity logit)
+    opacity: "mi.Float"       # sigmoid(opacity logit), times the compensation when anti-aliased
     color: "mi.Color3f"       # max(SH(dir) + 0.5, 0)
     depth: "mi.Float"         # camera-space z
     rect: tuple               # (tx0, ty0, tx1, ty1) tile rectangle, inclusive, mi.Int32 (detached)
@@ -106,6 +112,14 @@ class GaussianArrays:
                    quats=dr.gather(mi.Vector4f, g.rotations.array, idx, mode=perm),
                    opacity=sigmoid(g.opacities.array),
                    sh_dc=dc, sh_rest=rest, sh_degree=sh_degree)
+
+
+def _compensation(det_sigma, inv_det):
+    """Mip-Splatting's opacity factor sqrt(det(S) / det(S + dilation I)) (gsplat: ``max(0, ...)`` under the root);
+    its gradient is zero where the factor is 0 (a degenerate footprint), not the infinite slope of sqrt at 0."""
+    ratio = det_sigma * inv_det
+    positive = ratio > 0
+    return dr.select(positive, dr.sqrt(dr.select(positive, ratio, 1.0)), 0.0)
 
 
 def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig) -> Projected:
@@ -140,12 +154,16 @@ def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig) -> Projecte
     col = [mi.Vector3f(Rq[0][k], Rq[1][k], Rq[2][k]) for k in range(3)]
     a0 = [dr.dot(T0, col[k]) * s[k] for k in range(3)]
     a1 = [dr.dot(T1, col[k]) * s[k] for k in range(3)]
-    cov_a = a0[0] * a0[0] + a0[1] * a0[1] + a0[2] * a0[2] + cfg.dilation
+    sig_a = a0[0] * a0[0] + a0[1] * a0[1] + a0[2] * a0[2]
     cov_b = a0[0] * a1[0] + a0[1] * a1[1] + a0[2] * a1[2]
-    cov_c = a1[0] * a1[0] + a1[1] * a1[1] + a1[2] * a1[2] + cfg.dilation
+    sig_c = a1[0] * a1[0] + a1[1] * a1[1] + a1[2] * a1[2]
+    cov_a = sig_a + cfg.dilation
+    cov_c = sig_c + cfg.dilation
     det = cov_a * cov_c - cov_b * cov_b
     inv_det = dr.rcp(det)
     conic = mi.Vector3f(cov_c * inv_det, -cov_b * inv_det, cov_a * inv_det)
+    if cfg.antialiased:
+        opacity = opacity * _compensation(sig_a * sig_c - cov_b * cov_b, inv_det)
 
     mean2d = mi.Point2f(view.fx * tcam.x * inv_z + view.cx, view.fy * tcam.y * inv_z + view.cy)
 
