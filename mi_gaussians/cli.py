@@ -347,7 +347,7 @@ def _train_config(args, scene_file: bool = False):
     if args.iterations is not None and args.iterations < o.iterations:
         # a shorter schedule keeps the paper's proportions (densify until half the run)
         dens_kw["densify_until_iter"] = min(dn.densify_until_iter, args.iterations // 2)
-    densify = dataclasses.replace(dn, **dens_kw)
+    densify = dataclasses.replace(dn, absgrad=args.absgrad, **dens_kw)
     save = tuple(i for i in TrainConfig().save_iterations if i < optim.iterations)
     raster = dataclasses.replace(RasterConfig(), antialiased=args.antialiased)
     return TrainConfig(data=data, optim=optim, densify=densify, scene=scene, raster=raster, seed=args.seed,
@@ -364,6 +364,7 @@ _RUN_FIELDS = {
     "test_views": ("scene.test_views",), "radius": ("scene.radius",), "fov": ("scene.fov",), "up": ("scene.up",),
     "spp": ("scene.spp",), "linear": ("scene.linear",), "init": ("scene.init",),
     "init_points": ("scene.init_points",), "define": ("scene.defines",), "antialiased": ("raster.antialiased",),
+    "absgrad": ("densify.absgrad",),
 }
 
 
@@ -673,6 +674,9 @@ def _add_optimize(sub) -> None:
     s.add_argument("--background", type=finite_float, nargs="+", default=None,
                    help="background colour (1 or 3 values)")
     s.add_argument("--random-background", action="store_true", help="random background colour per iteration")
+    s.add_argument("--absgrad", action="store_true",
+                   help="densify on AbsGS's absolute per-pixel gradients (gsplat's absgrad), with its own threshold "
+                        "(densify.absgrad_threshold, default 0.0008)")
     s.add_argument("--antialiased", action="store_true",
                    help="Mip-Splatting's 2D filter (gsplat's antialiased mode); the model must then be rendered "
                         "with it, which config.json and gaussians.xml record")

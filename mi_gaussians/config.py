@@ -77,6 +77,8 @@ class DensifyConfig:
     densification_interval: int = 100
     opacity_reset_interval: int = 3000
     grad_threshold: float = 2e-4             # mean NDC-space norm of dL/d(projected mean)
+    absgrad: bool = False                    # AbsGS / gsplat's absgrad: the statistic sums |per-pixel gradient|
+    absgrad_threshold: float = 8e-4          # grad_threshold in absgrad mode (gsplat's advice for absgrad)
     percent_dense: float = 0.01              # clone when max scale <= percent_dense * extent, else split
     split_count: int = 2                     # a split Gaussian becomes this many
     split_scale_divisor: float = 1.6         # (0.8 * split_count) in the reference

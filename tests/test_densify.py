@@ -369,3 +369,43 @@ def test_gradients_cleared_on_every_densification_iteration():
             assert not np.array(dr.grad(params[key])).any()
             assert params[key] is getattr(params.gaussians, key)
             np.testing.assert_array_equal(snapshot(params)[key]["m"], before[key]["m"])   # moments untouched
+
+
+def test_absgrad_statistic_and_threshold():
+    """With absgrad the pre-backward hook asks the real backward pass for AbsGS's sums, the statistics accumulate
+    them (NDC-scaled like the plain gradient), and densification compares with absgrad_threshold."""
+    import scene_factory as sf
+    from mi_gaussians.raster.rasterize import render
+
+    cam = sf.identity_camera(32, 24, fx=30.0)
+    rng = np.random.default_rng(1)
+    n = 10
+    means = np.c_[rng.uniform(-0.5, 0.5, (n, 2)), rng.uniform(2.0, 3.0, n)]
+    g = Gaussians.from_numpy(means, np.full((n, 3), math.log(0.1)), np.tile([1.0, 0, 0, 0], (n, 1)),
+                             np.full(n, 0.5), rng.normal(size=(n, 3)), np.zeros((n, 3, 3)))
+    accum = {}
+    for absgrad in (False, True):
+        params = GaussianAdam(g, OptimConfig(), 1.0)
+        s = DefaultStrategy(dataclasses.replace(DensifyConfig(), absgrad=absgrad), 1.0)
+        state = s.initialize_state(params.n)
+        out = render(params.gaussians, cam)
+        s.step_pre_backward(params, state, 10, out)
+        dr.backward(dr.mean(dr.square(out.rgb.array - 0.25)))
+        s.step_post_backward(params, state, 10, out)
+        accum[absgrad] = stats(s, state)["grad_accum"]
+        if absgrad:
+            a = out.means2d_absgrad
+            want = np.hypot(np.array(a.x) * 16, np.array(a.y) * 12)      # NDC: W/2 = 16, H/2 = 12
+            np.testing.assert_allclose(accum[True], want, rtol=1e-6)
+    assert np.all(accum[True] >= accum[False] * (1 - 1e-6)) and np.any(accum[True] > 1.2 * accum[False])
+    # the threshold: a mean statistic between the two thresholds densifies only in the plain mode
+    mid = 5e-4
+    for absgrad, expect in ((False, 1), (True, 0)):
+        params = build([dict(sigma=0.01, opacity=0.5)])
+        s = DefaultStrategy(dataclasses.replace(DensifyConfig(), absgrad=absgrad), EXTENT)
+        state = s.initialize_state(1)
+        fake = fake_out([3], [mid / (W / 2)])
+        if absgrad:
+            fake.means2d_absgrad = fake.means2d_grad
+        info = s.step_post_backward(params, state, 600, fake)
+        assert info.cloned == expect, absgrad

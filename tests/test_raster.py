@@ -13,7 +13,7 @@ import pytest
 
 import mi_gaussians as mig
 import scene_factory as sf
-from raster_helpers import NAMES, gradients_numpy, random_weights, render_numpy
+from raster_helpers import NAMES, gradients_numpy, random_weights, render_numpy, weighted_loss
 from reference import fd_gradients, render_reference
 
 BACKGROUND = (0.3, 0.5, 0.7)
@@ -148,6 +148,32 @@ def test_antialiased_keeps_a_sub_pixel_gaussians_energy():
     ours = render_numpy(params, cam, antialiased=True)
     ref = render_reference(params, cam, antialiased=True)
     _compare(ours, ref)
+
+
+def test_means2d_absgrad_is_the_sum_of_per_pixel_absolute_gradients():
+    """AbsGS's statistic against its definition: the loss split into one loss per pixel, each pixel's
+    dL_pixel/d(mean2d) from the (tested) ordinary backward pass, absolute values summed per axis."""
+    params, cam = sf.random_scene(seed=8, n=12, sh_degree=1, width=16, height=12)
+    weights = random_weights(cam, seed=2)
+    g = mig.Gaussians.from_numpy(**params)
+    dr.enable_grad(g.means)
+    out = mig.render(g, cam, background=BACKGROUND)
+    out.request_absgrad()
+    dr.backward(weighted_loss(out, weights))
+    absgrad = np.stack([np.array(out.means2d_absgrad.x), np.array(out.means2d_absgrad.y)], axis=1)
+    plain = np.stack([np.array(out.means2d_grad.x), np.array(out.means2d_grad.y)], axis=1)
+    want = np.zeros_like(absgrad, dtype=np.float64)
+    for y in range(cam.height):
+        for x in range(cam.width):
+            one = {k: np.zeros_like(w) for k, w in weights.items()}
+            for k in one:
+                one[k][y, x] = weights[k][y, x]
+            _, o = gradients_numpy(params, cam, one, background=BACKGROUND)
+            want += np.abs(np.stack([np.array(o.means2d_grad.x), np.array(o.means2d_grad.y)], axis=1))
+    np.testing.assert_allclose(absgrad, want, rtol=1e-4, atol=1e-6 * np.abs(want).max())
+    assert np.all(absgrad >= np.abs(plain) - 1e-5) and np.any(absgrad > np.abs(plain) * 1.5 + 1e-3)
+    with pytest.raises(ValueError, match="request_absgrad"):
+        mig.render(g, cam).means2d_absgrad
 
 
 def test_gradients_match_drjit_loop_ad():

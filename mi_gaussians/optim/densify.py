@@ -17,7 +17,9 @@ Rules (the reference ``train.py`` / ``densify_and_prune``; ``step`` is the 1-bas
 
     while step < densify_until_iter:
         statistics, for Gaussians with radii > 0:
-            grad_accum += |(gx W/2, gy H/2)|     (pixel gradient in NDC units, as the reference CUDA rasterizer reports it)
+            grad_accum += |(gx W/2, gy H/2)|     (pixel gradient in NDC units, as the reference CUDA rasterizer reports it;
+                                                  with absgrad (AbsGS, gsplat) g is the sum over pixels of |each
+                                                  pixel's contribution|, per axis, and the threshold absgrad_threshold)
             denom += 1;  max_radii = max(max_radii, radii)
         if step > densify_from_iter and step % densification_interval == 0:
             grad = grad_accum / denom (0 where denom == 0)
@@ -152,6 +154,12 @@ class DefaultStrategy(Strategy):
         return state
 
     # ------------------------------------------------------------------ hook
+    def step_pre_backward(self, params, state, step: int | None, out) -> None:
+        """With ``absgrad``, ask the backward pass for the per-pixel absolute gradient sums (every iteration, so a
+        frozen step records the same kernels each time)."""
+        if self.cfg.absgrad:
+            out.request_absgrad()
+
     def step_post_backward(self, params: GaussianAdam, state: DensifyState, step: int, out) -> StepInfo:
         """Update the statistics and, on the scheduled iterations, densify / prune / reset opacities.
 
@@ -204,7 +212,7 @@ class DefaultStrategy(Strategy):
         if dr.width(radii) != st.n:
             raise ValueError(f"render output has {dr.width(radii)} Gaussians, the statistics {st.n}")
         height, width = int(out.rgb.shape[0]), int(out.rgb.shape[1])
-        grad = dr.detach(out.means2d_grad)
+        grad = dr.detach(out.means2d_absgrad if self.cfg.absgrad else out.means2d_grad)
         # the reference rasterizer reports dL/d(mean2d) in NDC units: pixel gradient times W/2 and H/2
         gx = grad.x * dr.opaque(mi.Float, 0.5 * float(width))
         gy = grad.y * dr.opaque(mi.Float, 0.5 * float(height))
@@ -232,7 +240,7 @@ class DefaultStrategy(Strategy):
         dense = float(cfg.percent_dense) * self.extent
         sigma_max = _max3(dr.exp(_rows3(params["scales"])))
         grads = dr.select(st.denom > 0, st.grad_accum / st.denom, 0.0)
-        high = grads >= float(cfg.grad_threshold)
+        high = grads >= float(cfg.absgrad_threshold if cfg.absgrad else cfg.grad_threshold)
         clone_idx = dr.compress(high & (sigma_max <= dense))
         split_mask = high & (sigma_max > dense)
         split_idx = dr.compress(split_mask)

@@ -66,7 +66,8 @@ class Strategy:
         """Called after the render of iteration ``step`` and before ``dr.backward``; a frozen step calls it with
         ``step=None`` while it records (so it must do device work only, the same on every iteration). Our rasterizer always records
         what densification needs from the backward pass (``RenderOutput.means2d_grad``), so the default does
-        nothing; a strategy that must mark something for the backward pass overrides it."""
+        nothing; a strategy that must mark something for the backward pass overrides it (e.g.
+        ``out.request_absgrad()``)."""
 
     def step_post_backward(self, params, state, step: int, out) -> StepInfo:
         """Called after ``dr.backward`` and before the Adam step: update the statistics in ``state`` from ``out``

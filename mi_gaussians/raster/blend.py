@@ -44,7 +44,9 @@ class BlendStats:
     values the backward pass stores here from the caller."""
 
     def __init__(self):
+        self.absgrad_requested = False   # set before dr.backward: also sum |per-pixel dL / d mean2d| (AbsGS)
         self.means2d_grad = None   # dL / d mean2d in pixels, mi.Vector2f (N,), after dr.backward
+        self.means2d_absgrad = None   # sum over pixels of |dL_pixel / d mean2d| per axis, when requested
         self.forward_evaluations = None    # (pixel x Gaussian) evaluations of the forward blend (mi.UInt32 (1,))
         self.backward_evaluations = None   # same for the backward blend, after dr.backward
 
@@ -179,8 +181,12 @@ def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cf
     return img, T_lane, last_lane, evaluations
 
 
-def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane, last_lane, g_img: list, n: int):
-    """Gradients w.r.t. the packed features: (geo grads (N*8), colour grads (N*4), evaluations (lazy UInt32))."""
+def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane, last_lane, g_img: list, n: int,
+                   absgrad: bool = False):
+    """Gradients w.r.t. the packed features: (geo grads (N*8), colour grads (N*4), evaluations (lazy UInt32)).
+
+    With ``absgrad`` the padding slots carry AbsGS's statistic: geo slot 7 the sum over pixels of |d L_pixel / d mx|,
+    colour slot 3 that of |d L_pixel / d my| (gsplat's ``absgrad``)."""
     P = PIXELS_PER_LANE
     n_lanes = bins.n_tiles * LANES_PER_TILE
     lane, tile, px, pys, valid, pix = _lane_pixels(frame, n_lanes)
@@ -229,7 +235,7 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
         any_hit = _any(hit)
         c = dr.gather(mi.Vector4f, col, g, active=any_hit)
         # (separate objects: Dr.Jit's += is in-place)
-        g_mx, g_my, g_a, g_b, g_c, g_o, g_z, g_r, g_g, g_bl = (mi.Float(0.0) for _ in range(10))
+        g_mx, g_my, g_a, g_b, g_c, g_o, g_z, g_r, g_g, g_bl, abs_mx, abs_my = (mi.Float(0.0) for _ in range(12))
         for k in range(P):
             a = alphas[k]
             one_m = 1.0 - a
@@ -245,8 +251,13 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
             g_pow = dr.select(hw, g_alpha * a, 0.0)   # d alpha / d power = o G = alpha when not clamped
             dy = dys[k]
             aT_h = dr.select(h, aT, 0.0)
-            g_mx = g_mx - g_pow * (ca * dx + cb * dy)
-            g_my = g_my - g_pow * (cc * dy + cb * dx)
+            d_mx = g_pow * (ca * dx + cb * dy)
+            d_my = g_pow * (cc * dy + cb * dx)
+            g_mx = g_mx - d_mx
+            g_my = g_my - d_my
+            if absgrad:
+                abs_mx = abs_mx + dr.abs(d_mx)
+                abs_my = abs_my + dr.abs(d_my)
             g_a = g_a - 0.5 * g_pow * dx * dx
             g_b = g_b - g_pow * dx * dy
             g_c = g_c - 0.5 * g_pow * dy * dy
@@ -255,9 +266,9 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
             g_r = g_r + gc.x * aT_h
             g_g = g_g + gc.y * aT_h
             g_bl = g_bl + gc.z * aT_h
-        dr.scatter_add(ggeo, ArrayXf(g_mx, g_my, g_a, g_b, g_c, g_o, g_z, mi.Float(0.0)), g,
+        dr.scatter_add(ggeo, ArrayXf(g_mx, g_my, g_a, g_b, g_c, g_o, g_z, abs_mx), g,
                        active=any_hit, mode=dr.ReduceMode.Expand)
-        dr.scatter_add(gcol, mi.Vector4f(g_r, g_g, g_bl, 0.0), g, active=any_hit, mode=dr.ReduceMode.Expand)
+        dr.scatter_add(gcol, mi.Vector4f(g_r, g_g, g_bl, abs_my), g, active=any_hit, mode=dr.ReduceMode.Expand)
         return i, tuple(T), tuple(acc)
 
     state = (mi.UInt32(i0), tuple(mi.Float(Tf[k]) for k in range(P)),
@@ -285,14 +296,18 @@ class BlendOp(dr.CustomOp):
 
     def backward(self):
         n = self.n
+        absgrad = self.stats.absgrad_requested
         ggeo, gcol, self.stats.backward_evaluations = blend_backward(
             self.geo, self.col, self.bins, self.frame, self.cfg, self.T_lane, self.last_lane,
-            [mi.Float(x) for x in self.grad_out()], n)
+            [mi.Float(x) for x in self.grad_out()], n, absgrad)
         idx = dr.arange(mi.UInt32, n)
         gg = [dr.gather(mi.Float, ggeo, idx * GEO + k) for k in range(7)]
         gc = [dr.gather(mi.Float, gcol, idx * COL + k) for k in range(3)]
         gm = mi.Vector2f(gg[0], gg[1])
         self.stats.means2d_grad = gm
+        if absgrad:
+            self.stats.means2d_absgrad = mi.Vector2f(dr.gather(mi.Float, ggeo, idx * GEO + 7),
+                                                     dr.gather(mi.Float, gcol, idx * COL + 3))
         self.set_grad_in("mean2d", gm)
         self.set_grad_in("conic", mi.Vector3f(gg[2], gg[3], gg[4]))
         self.set_grad_in("opacity", gg[5])

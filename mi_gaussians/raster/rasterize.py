@@ -6,6 +6,8 @@
     out.depth  TensorXf (H, W)      expected depth sum(z_i w_i) / sum(w_i) (0 where nothing was hit)
     out.radii  Int32 (N,)           reference screen radius (ceil(3 sqrt(lambda_max)) px), 0 when culled
     out.means2d_grad                dL / d(projected mean) in pixels, (N,) Vector2f, available after dr.backward
+    out.means2d_absgrad             sum over pixels of |dL_pixel / d(projected mean)| (AbsGS), after dr.backward,
+                                    when ``out.request_absgrad()`` was called before it
 
 Gradients reach the raw parameters of ``g`` through Dr.Jit's AD (``dr.enable_grad(g.means)``, ...,
 ``dr.backward(loss)``); the blend's own backward pass is the hand-written one of ``blend.py``.
@@ -43,6 +45,20 @@ class RenderOutput:
         if self._stats.means2d_grad is None:
             return dr.zeros(mi.Vector2f, dr.width(self.radii))
         return self._stats.means2d_grad
+
+    def request_absgrad(self) -> None:
+        """Ask the coming backward pass for :attr:`means2d_absgrad` as well (call before ``dr.backward``)."""
+        self._stats.absgrad_requested = True
+
+    @property
+    def means2d_absgrad(self) -> "mi.Vector2f":
+        """AbsGS's statistic (gsplat's ``absgrad``): per Gaussian and axis, the sum over pixels of the absolute value of
+        each pixel's contribution to dL/d(projected mean); filled by ``dr.backward`` after :meth:`request_absgrad`."""
+        if not self._stats.absgrad_requested:
+            raise ValueError("means2d_absgrad: call request_absgrad() before dr.backward")
+        if self._stats.means2d_absgrad is None:
+            return dr.zeros(mi.Vector2f, dr.width(self.radii))
+        return self._stats.means2d_absgrad
 
 
 def _background(background) -> tuple:
