@@ -308,7 +308,7 @@ def _read_cameras_bin(path: Path) -> dict[int, ColmapCamera]:
     cameras: dict[int, ColmapCamera] = {}
     for i in range(f.count("cameras", 24)):
         f.record = f"camera record {i}"
-        cid, model_id, width, height = f.read("iiQQ")
+        cid, model_id, width, height = f.read("IiQQ")
         model = _MODEL_IDS.get(model_id)
         if model is None:
             raise f.error(f"unsupported COLMAP camera model id {model_id} (camera {cid}); supported: "

@@ -29,7 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..conventions import MAX_ABS_SH_COEFFICIENT, sh_channel_major_to_coeff_major, sh_coeff_count, sh_coeff_major_to_channel_major
+from ..conventions import (MAX_ABS_SH_COEFFICIENT, sh_channel_major_to_coeff_major, sh_coeff_count,
+                           sh_coeff_major_to_channel_major)
 from ..io_utils import atomic_path
 
 #: PLY scalar type names -> NumPy type codes (the official names and the common sized aliases).
@@ -335,15 +336,18 @@ def _check_colour_range(path, cols: dict, groups: dict) -> None:
     """Refuse colour coefficients beyond ``MAX_ABS_SH_COEFFICIENT`` (they render Inf pixels), naming the property."""
     for key in ("sh_dc", "f_rest"):
         a = np.abs(cols[key])
-        if a.size == 0 or a.max() <= MAX_ABS_SH_COEFFICIENT:
+        big = a > MAX_ABS_SH_COEFFICIENT      # (NaN compares False: non-finite values are the caller's choice)
+        if not big.any():
             continue
-        j = int(np.argmax(a.max(axis=0)))
-        count = int((a > MAX_ABS_SH_COEFFICIENT).sum())
+        over = np.where(big, a, 0.0).max(axis=0)
+        j = int(np.argmax(over))
+        count = int(big.sum())
         raise PLYError(path, f"{count} colour coefficient{'s' if count > 1 else ''} beyond +-{MAX_ABS_SH_COEFFICIENT:g} "
-                             f"(largest {a[:, j].max():g} in {groups[key][j]!r}); colours that large render as Inf")
+                             f"(largest {over[j]:g} in {groups[key][j]!r}); colours that large render as Inf")
 
 
-def read_ply(path: str | os.PathLike, *, allow_nonfinite: bool = False, renderable: bool = False) -> dict[str, np.ndarray]:
+def read_ply(path: str | os.PathLike, *, allow_nonfinite: bool = False,
+             renderable: bool = False) -> dict[str, np.ndarray]:
     """Read a 3DGS PLY into raw float32 arrays, keyed like ``Gaussians.from_numpy``.
 
     Returns ``means`` (N, 3), ``scales`` (N, 3), ``rotations`` (N, 4) wxyz, ``opacities`` (N,), ``sh_dc`` (N, 3),
