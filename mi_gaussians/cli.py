@@ -187,8 +187,9 @@ def _model_raster_config(ply: Path, antialiased: bool | None):
     if (ply.parent / run_folder.CONFIG).is_file():
         try:
             cfg = run_folder.saved_config(run_folder.read_saved(ply.parent, ""), ply.parent).raster
-        except ValueError:      # another tool's config.json: not a run record
-            pass
+        except ValueError as e:      # e.g. another tool's config.json: not a run record
+            if antialiased is None:
+                print(f"mi-gs: warning: rendering with the default settings: {e}", file=sys.stderr)
     return cfg if antialiased is None else dataclasses.replace(cfg, antialiased=antialiased)
 
 
@@ -230,6 +231,9 @@ def _render_scene_file(args, src: Path, out: Path) -> int:
     from .data.scene_file import load_file
     from .imwrite import write_image
 
+    if args.antialiased is not None:
+        raise InputError(f"--{'' if args.antialiased else 'no-'}antialiased applies to a .ply; in a scene .xml the "
+                         "gaussian_splatting integrator's antialiased parameter decides")
     outputs = _outputs_for(out)
     scene = load_file(src, args.define)
     if not scene.sensors():
@@ -414,7 +418,10 @@ def _check_resumed_dataset(src: Path, out: Path, saved: dict, fingerprint: str |
         raise InputError(f"--resume: the run in {out} was trained on {saved['dataset']}, not on {src.resolve()} "
                          f"(recorded in {out / run_folder.CONFIG})")
     recorded = saved.get("dataset_fingerprint")
-    if fingerprint is not None and recorded is not None and recorded != fingerprint:
+    if fingerprint is not None and recorded is not None and recorded.split(":")[0] != fingerprint.split(":")[0]:
+        print(f"mi-gs: warning: {out / run_folder.CONFIG} holds a dataset fingerprint of an earlier mi-gs; the "
+              "dataset's content is not compared this time (the run's record gets the current one)", file=sys.stderr)
+    elif fingerprint is not None and recorded is not None and recorded != fingerprint:
         raise InputError(f"--resume: {src}: the dataset changed since the run in {out} started (its images, "
                          "cameras or points differ); start a new run (--overwrite or another folder)")
 

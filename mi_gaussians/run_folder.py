@@ -158,7 +158,7 @@ def saved_config(saved: dict, out: Path):
 
     try:
         return TrainConfig.from_dict(saved["train"])
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, AttributeError) as e:     # (AttributeError: a section that is not an object)
         raise ValueError(f"{out / CONFIG}: invalid training settings ({e})") from None
 
 

@@ -79,16 +79,18 @@ def _header(path: Path, cam: Camera, color_space: str) -> str:
     return f"""<!-- Gaussians fitted by mi-gs optimize, rendered by mi-gaussians' rasterizer inside Mitsuba:
          mi-gs render {path.name} -o render.exr
      The camera is the held-out view {cam.name!r}. color_space="{color_space}": the Gaussians hold {holds}.
-     Mitsuba's own ray tracer for ellipsoids: -Dintegrator=volprim_rf_basic (it knows no color_space). -->"""
+     Mitsuba's own ray tracer reads the same shape: replace the <integrator> element by
+         <integrator type="volprim_rf_basic"/>
+     (it takes none of the gaussian_splatting parameters, which Mitsuba refuses as unreferenced, and shows the
+     colours as they are stored). -->"""
 
 
 def gaussian_scene_xml(path: str | os.PathLike, ply: str, cam: Camera, color_space: str = "linear",
                        background=(0.0, 0.0, 0.0), antialiased: bool = False) -> str:
-    """The text of :func:`write_gaussian_scene`'s file. The integrator's type is the parameter ``$integrator``
-    (default ``gaussian_splatting``), so ``-Dintegrator=volprim_rf_basic`` switches to Mitsuba's ray tracer."""
-    integrator = {**integrator_dict(color_space, background, antialiased), "type": "$integrator"}
-    lines = [_header(Path(path), cam, color_space), '<scene version="3.0.0">',
-             f'{_INDENT}<default name="integrator" value="{INTEGRATOR}"/>', ""]
+    """The text of :func:`write_gaussian_scene`'s file. (Its integrator is not a ``$integrator`` parameter: Mitsuba
+    refuses the gaussian_splatting properties in any other integrator, so ``-Dintegrator=...`` could not work.)"""
+    integrator = integrator_dict(color_space, background, antialiased)
+    lines = [_header(Path(path), cam, color_space), '<scene version="3.0.0">', ""]
     lines += _plugin("integrator", integrator, 1) + [""]
     lines += _plugin("sensor", cam.to_mitsuba(), 1, plugin_id="camera") + [""]
     lines += _plugin("shape", {"type": "ellipsoids", "filename": ply}, 1, plugin_id="gaussians")

@@ -208,6 +208,16 @@ def test_antialiased_run_is_recorded_and_rendered_that_way(tmp_path):
     res = run("optimize", data, "-o", out, "--resume", "--iterations", 31, "--quiet")     # keeps the run's mode
     assert res.returncode == 0, res.stderr
     assert json.loads((out / "config.json").read_text())["train"]["raster"]["antialiased"] is True
+    # a config.json that is not a run record: plain, with a warning; the flag is refused for a scene .xml
+    other = tmp_path / "other"
+    other.mkdir()
+    shutil.copy(tmp_path / "lone.ply", other / "m.ply")     # (the model of 30 iterations: want[] is its render)
+    (other / "config.json").write_text(json.dumps({"dataset": str(data), "train": {"raster": 3}}))
+    res = run("render", other / "m.ply", "--camera", tmp_path / "cam.json", "-o", tmp_path / "other.exr")
+    assert res.returncode == 0 and "warning: rendering with the default settings" in res.stderr, res.stderr
+    np.testing.assert_allclose(_read_exr(tmp_path / "other.exr"), want[False], atol=1e-5)
+    assert_one_line_error(run("render", SCENES / "tiny_gaussians.xml", "-o", tmp_path / "x.exr", "--antialiased"),
+                          "applies to a .ply")
     plain = tmp_path / "plain"
     assert run("optimize", data, "-o", plain, "--iterations", 5, "--quiet", "--random-points", 100).returncode == 0
     assert_one_line_error(run("optimize", data, "-o", plain, "--resume", "--antialiased"),

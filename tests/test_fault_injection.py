@@ -44,8 +44,17 @@ def checkpoint_step(out: Path) -> int:
 
 
 def _start(data: Path, out: Path, resume: bool) -> subprocess.Popen:
+    """The run (or its resume), its stderr going to a file (a pipe nobody reads while it runs could fill up)."""
     cmd = [EXE, "optimize", str(data), "-o", str(out), *ARGS] + (["--resume"] if resume else [])
-    return subprocess.Popen(cmd, cwd=tempfile.gettempdir(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    log = open(out.parent / "stderr.txt", "wb")
+    try:
+        return subprocess.Popen(cmd, cwd=tempfile.gettempdir(), stdout=subprocess.DEVNULL, stderr=log)
+    finally:
+        log.close()
+
+
+def _stderr(out: Path) -> str:
+    return (out.parent / "stderr.txt").read_text(errors="replace")[-3000:]
 
 
 def _kill_while_writing(proc: subprocess.Popen, out: Path, deadline: float) -> bool:
@@ -68,8 +77,8 @@ def test_kill_9_at_random_moments_then_resume(tmp_path):
     proc = _start(data, out, resume=False)
     while True:
         if kills >= KILLS:                       # enough: let the last resume finish
-            _, err = proc.communicate(timeout=900)
-            assert proc.returncode == 0, err.decode()[-3000:]
+            proc.wait(timeout=900)
+            assert proc.returncode == 0, _stderr(out)
             break
         # a random checkpoint step ahead of the last one, spread so that the kills cover the whole run
         current = checkpoint_step(out)
@@ -79,7 +88,7 @@ def test_kill_9_at_random_moments_then_resume(tmp_path):
         while time.time() < deadline and proc.poll() is None and checkpoint_step(out) < target:
             time.sleep(0.005)
         if proc.poll() is not None:              # finished before the kill: the run is complete
-            assert proc.returncode == 0, proc.stderr.read().decode()[-3000:]
+            assert proc.returncode == 0, _stderr(out)
             break
         if kills % 2:
             saw = _kill_while_writing(proc, out, time.time() + 30)
@@ -89,7 +98,7 @@ def test_kill_9_at_random_moments_then_resume(tmp_path):
             saw = False
         proc.wait()
         if proc.returncode != -signal.SIGKILL:   # it ended on its own before the signal arrived
-            assert proc.returncode == 0, proc.stderr.read().decode()[-3000:]
+            assert proc.returncode == 0, _stderr(out)
             break
         kills += 1
         mid_write += bool(saw and temporary_files(out))

@@ -78,6 +78,13 @@ def test_antialiased_parameter(model, tmp_path):
     (tmp_path / "g.xml").write_text(xml.replace("model.ply", str(path)))
     np.testing.assert_allclose(np.array(mi.render(mi.load_file(str(tmp_path / "g.xml"))))[..., :3], aa, atol=2e-5)
     assert "antialiased" not in gaussian_scene_xml(tmp_path / "g.xml", "model.ply", cam)
+    # the header's recipe for Mitsuba's own ray tracer: the integrator element replaced, the scene loads
+    import re
+
+    traced = re.sub(r'<integrator type="gaussian_splatting">.*?</integrator>', '<integrator type="volprim_rf_basic"/>',
+                    xml, flags=re.S)
+    assert "volprim_rf_basic" in xml and 'type="gaussian_splatting"' not in traced
+    mi.load_string(traced.replace("model.ply", str(path)))
 
 
 def test_mi_render_is_differentiable(model):

@@ -145,6 +145,17 @@ def test_resume_refuses_another_dataset_folder(copy_of, tmp_path):
     assert snapshot(out) == before
 
 
+def test_resume_accepts_a_fingerprint_of_an_earlier_version_with_a_warning(copy_of):
+    data, out = copy_of
+    cfg = json.loads((out / "config.json").read_text())
+    cfg["dataset_fingerprint"] = "0" * 64          # the unversioned digest of the first fingerprint
+    (out / "config.json").write_text(json.dumps(cfg))
+    res = run("optimize", data, "-o", out, "--resume", "--iterations", 7, "--quiet")
+    assert res.returncode == 0, res.stderr
+    assert "fingerprint of an earlier mi-gs" in res.stderr
+    assert json.loads((out / "config.json").read_text())["dataset_fingerprint"].startswith("v2:")
+
+
 def test_resume_refuses_a_changed_dataset(copy_of):
     data, out = copy_of
     before = snapshot(out)

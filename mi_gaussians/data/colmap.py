@@ -190,7 +190,8 @@ def _read_cameras_text(path: Path) -> dict[int, ColmapCamera]:
         params = [_num(where, p, f"parameter {i + 1}") for i, p in enumerate(tok[4:])]
         if model in _PARAM_COUNTS and len(params) != _PARAM_COUNTS[model]:
             raise ValueError(f"{where}: a {model} camera has {_PARAM_COUNTS[model]} parameters, got {len(params)}")
-        _unique(where, "CAMERA_ID", set(cameras), cid)
+        if cid in cameras:
+            raise ValueError(f"{where}: duplicate CAMERA_ID {cid!r}")
         cameras[cid] = _camera(where, cid, model, width, height, params)
     return cameras
 
@@ -252,6 +253,17 @@ def _read_points_text(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ---------------------------------------------------------------------------------------------------- binary
+def _model_name(model_id: int) -> str:
+    """`` = NAME`` of a COLMAP model id pycolmap knows, else an empty string."""
+    import pycolmap
+
+    try:
+        name = pycolmap.CameraModelId(model_id).name
+    except (ValueError, TypeError, OverflowError):
+        return ""
+    return f" = {name}" if name.isidentifier() else ""      # (pycolmap names an unknown id '???')
+
+
 class _Binary:
     """A bounds-checked little-endian reader over one file's bytes; errors name the file, record and byte offset."""
 
@@ -311,8 +323,9 @@ def _read_cameras_bin(path: Path) -> dict[int, ColmapCamera]:
         cid, model_id, width, height = f.read("IiQQ")
         model = _MODEL_IDS.get(model_id)
         if model is None:
-            raise f.error(f"unsupported COLMAP camera model id {model_id} (camera {cid}); supported: "
-                          + ", ".join(f"{k} {v}" for k, v in _MODEL_IDS.items()))
+            raise f.error(f"unsupported COLMAP camera model id {model_id}{_model_name(model_id)} (camera {cid}); "
+                          "supported: " + ", ".join(f"{k} {v}" for k, v in _MODEL_IDS.items())
+                          + " (undistort fisheye captures to pinhole images first)")
         params = list(f.read("d" * _PARAM_COUNTS[model]))
         if cid in cameras:
             raise f.error(f"duplicate camera id {cid}")

@@ -394,11 +394,21 @@ def verify_images(views: list[View], progress: bool = False) -> None:
         raise ValueError(problems[0] + more)
 
 
+FINGERPRINT_VERSION = "v2"
+
+
 def fingerprint(ds: Dataset) -> str:
     """A content fingerprint of what a run trains on: every view's name, camera (and lens distortion) and image (and
     mask) file bytes, the initial points, the background and the colour encoding (SHA-256, hex). A resumed run must
-    see the same."""
+    see the same.
+
+    Canonical, so that how a file is parsed cannot change it: poses and intrinsics rounded to 1e-9, points in sorted
+    order (a COLMAP model's points come in file order now, in pycolmap's hash order before). The value carries its
+    version (``FINGERPRINT_VERSION:`` then the hex digest); a record of another version is not compared."""
     import hashlib
+
+    def rounded(a) -> bytes:
+        return (np.round(np.asarray(a, np.float64), 9) + 0.0).tobytes()     # (+ 0.0: -0.0 and 0.0 hash alike)
 
     h = hashlib.sha256()
     h.update(f"{ds.layout}|{ds.color_space}|{ds.resolution}|".encode())
@@ -407,19 +417,20 @@ def fingerprint(ds: Dataset) -> str:
         for v in views:
             c = v.camera
             h.update(f"{split}|{v.name}|{c.width}|{c.height}|".encode())
-            h.update(np.array([c.fx, c.fy, c.cx, c.cy], np.float64).tobytes())
-            h.update(np.asarray(c.world_to_camera, np.float64).tobytes())
+            h.update(rounded([c.fx, c.fy, c.cx, c.cy]))
+            h.update(rounded(c.world_to_camera))
             und = getattr(v.loader, "undistorter", None)
             if und is not None:     # the lens model the images are undistorted with (the pinhole can stay the same)
                 d = und.distorted
                 h.update(f"{und.model}|{d.width}|{d.height}|{v.loader.source_size}|".encode())
-                h.update(np.asarray(list(d.params), np.float64).tobytes())
+                h.update(rounded(list(d.params)))
             for path in (v.image_path, getattr(v.loader, "mask_path", None)):
                 if path is not None:
                     with open(path, "rb") as f:
                         for block in iter(lambda: f.read(1 << 20), b""):
                             h.update(block)
-    for pts in (ds.points_xyz, ds.points_rgb):
-        if pts is not None:
-            h.update(np.ascontiguousarray(pts, np.float32).tobytes())
-    return h.hexdigest()
+    if ds.points_xyz is not None:
+        pts = np.concatenate([np.asarray(ds.points_xyz, np.float32).reshape(-1, 3),
+                              np.asarray(ds.points_rgb, np.float32).reshape(-1, 3)], axis=1)
+        h.update(np.ascontiguousarray(pts[np.lexsort(pts.T[::-1])]).tobytes())
+    return f"{FINGERPRINT_VERSION}:{h.hexdigest()}"

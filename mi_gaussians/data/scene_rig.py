@@ -83,25 +83,19 @@ def rig_directions(n: int, kind: str, up, elevation: tuple[float, float], azimut
 
 
 # ---------------------------------------------------------------------------------------------------- sensors
-def _sensor_defaults(scene, p: Path, cfg: SceneConfig) -> dict:
-    """fov / resolution / up / spp of the scene's first sensor (empty when it has none).
-
-    A first sensor that is not perspective (e.g. ``orthographic``) is refused unless ``cfg.fov`` is given: the rig's
-    cameras are perspective, and silently putting a 40-degree rig in place of an orthographic view would train on
-    pictures the scene's author never framed. With ``--fov`` its film size, up direction and sample count are used."""
+def _sensor_defaults(scene) -> dict:
+    """fov / resolution / up / spp of the scene's first sensor (empty when it has none); a sensor that is not
+    perspective (e.g. ``orthographic``) gives no fov and its class name as ``not_perspective``."""
     sensors = list(scene.sensors())
     if not sensors:
         return {}
     s = sensors[0]
     spp = int(s.sampler().sample_count()) if s.sampler() is not None else None
     if s.class_name() != "PerspectiveCamera":
-        if cfg.fov is None:
-            raise ValueError(f"{p}: the scene's sensor {s.id() or 0!r} ({s.class_name()}) is not perspective, and "
-                             "the generated camera rig is; give --fov DEGREES to train on a perspective rig anyway (the "
-                             "rasterizer renders pinhole cameras only)")
         to_world = np.array(s.world_transform().matrix, dtype=np.float64).reshape(4, 4)
         size = tuple(int(v) for v in s.film().size())
-        return {"resolution": size, "up": _snap_axis(to_world[:3, 1]), "spp": spp}
+        return {"resolution": size, "up": _snap_axis(to_world[:3, 1]), "spp": spp,
+                "not_perspective": f"{s.id() or 0!r} ({s.class_name()})"}
     cam = Camera.from_mitsuba(s)
     up = -cam.camera_to_world[:3, 1]       # OpenCV y points down
     return {"fov": math.degrees(cam.fov_x), "resolution": (cam.width, cam.height), "up": _snap_axis(up), "spp": spp}
@@ -175,7 +169,13 @@ def _rig_radius(cfg: SceneConfig, lo: np.ndarray, hi: np.ndarray, fov: float, wi
     return radius
 
 
-def _generated_views(scene, rig: str, cfg: SceneConfig, defaults: dict, spp: int, seed: int) -> SceneViews:
+def _generated_views(scene, p: Path, rig: str, cfg: SceneConfig, defaults: dict, spp: int, seed: int) -> SceneViews:
+    if "not_perspective" in defaults and cfg.fov is None:
+        # the rig's cameras are perspective: silently putting a 40-degree rig in place of an orthographic view would
+        # train on pictures the scene's author never framed
+        raise ValueError(f"{p}: the scene's sensor {defaults['not_perspective']} is not perspective, and the "
+                         "generated camera rig is; give --fov DEGREES to train on a perspective rig anyway (the "
+                         "rasterizer renders pinhole cameras only)")
     if cfg.views < 1 or cfg.test_views < 0:
         raise ValueError(f"the rig needs views >= 1 and test_views >= 0, got {cfg.views} and {cfg.test_views}")
     width, height = _rig_film_size(cfg, defaults)
@@ -199,7 +199,7 @@ def scene_views(scene, path: str | os.PathLike, cfg: SceneConfig, test_every: in
     """Training and held-out cameras for ``scene`` (see the module docstring)."""
     if cfg.rig not in RIGS:
         raise ValueError(f"unknown camera rig {cfg.rig!r} (expected one of {', '.join(RIGS)})")
-    defaults = _sensor_defaults(scene, Path(path), cfg)
+    defaults = _sensor_defaults(scene)
     spp = cfg.spp or defaults.get("spp") or FALLBACK_SPP
     if spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")
@@ -208,4 +208,4 @@ def scene_views(scene, path: str | os.PathLike, cfg: SceneConfig, test_every: in
         rig = "sensors" if len(scene.sensors()) >= 2 else "hemisphere"
     if rig == "sensors":
         return _declared_views(scene, Path(path), cfg, test_every, spp)
-    return _generated_views(scene, rig, cfg, defaults, spp, seed)
+    return _generated_views(scene, Path(path), rig, cfg, defaults, spp, seed)
