@@ -331,7 +331,7 @@ def _data_resolution_and_scene(args, scene_file: bool, default_resolution: int):
 def _train_config(args, scene_file: bool = False):
     import dataclasses
 
-    from .config import DataConfig, DensifyConfig, OptimConfig, RasterConfig, TrainConfig
+    from .config import DataConfig, DensifyConfig, MCMCConfig, OptimConfig, RasterConfig, TrainConfig
 
     d, o, dn = DataConfig(), OptimConfig(), DensifyConfig()
     resolution, scene = _data_resolution_and_scene(args, scene_file, d.resolution)
@@ -352,9 +352,16 @@ def _train_config(args, scene_file: bool = False):
         # a shorter schedule keeps the paper's proportions (densify until half the run)
         dens_kw["densify_until_iter"] = min(dn.densify_until_iter, args.iterations // 2)
     densify = dataclasses.replace(dn, absgrad=args.absgrad, **dens_kw)
+    strategy = args.strategy or TrainConfig().strategy
+    mc = MCMCConfig()
+    mcmc_kw = {} if args.max_gaussians is None else {"cap_max": args.max_gaussians}
+    if args.iterations is not None and args.iterations < o.iterations:
+        # the paper's proportion: refine until 25k of 30k iterations
+        mcmc_kw["refine_stop_iter"] = min(mc.refine_stop_iter, args.iterations * 5 // 6)
     save = tuple(i for i in TrainConfig().save_iterations if i < optim.iterations)
     raster = dataclasses.replace(RasterConfig(), antialiased=args.antialiased)
     return TrainConfig(data=data, optim=optim, densify=densify, scene=scene, raster=raster, seed=args.seed,
+                       strategy=strategy, mcmc=dataclasses.replace(mc, **mcmc_kw),
                        checkpoint_every=args.checkpoint_every, eval_every=args.eval_every, save_iterations=save)
 
 
@@ -368,7 +375,7 @@ _RUN_FIELDS = {
     "test_views": ("scene.test_views",), "radius": ("scene.radius",), "fov": ("scene.fov",), "up": ("scene.up",),
     "spp": ("scene.spp",), "linear": ("scene.linear",), "init": ("scene.init",),
     "init_points": ("scene.init_points",), "define": ("scene.defines",), "antialiased": ("raster.antialiased",),
-    "absgrad": ("densify.absgrad",),
+    "absgrad": ("densify.absgrad",), "strategy": ("strategy",), "max_gaussians": ("mcmc.cap_max",),
 }
 
 
@@ -440,7 +447,13 @@ def _optimize_config(args, src: Path, out: Path):
     run_folder.check_new_run(out, args.overwrite)
     cfg = _train_config(args, scene_file=_is_scene_file(src))
     try:
-        return cfg.with_settings(args.settings or ()), None
+        cfg = cfg.with_settings(args.settings or ())
+        if args.max_gaussians is not None and cfg.strategy != "mcmc":
+            raise InputError("--max-gaussians is the budget of --strategy mcmc (the default strategy has none)")
+        from .optim.trainer import make_strategy
+
+        make_strategy(cfg, 1.0, white_background=False)        # (refuses an unknown strategy or bad settings)
+        return cfg, None
     except ValueError as e:
         raise InputError(str(e)) from None
 
@@ -664,7 +677,7 @@ def _add_scene_options(s) -> None:
 
 
 def _add_optimize(sub) -> None:
-    from .config import DataConfig, OptimConfig, TrainConfig
+    from .config import DataConfig, MCMCConfig, OptimConfig, TrainConfig
     from .data.scene_rig import FALLBACK_RESOLUTION
 
     d, o, t = DataConfig(), OptimConfig(), TrainConfig()
@@ -684,6 +697,11 @@ def _add_optimize(sub) -> None:
     s.add_argument("--absgrad", action="store_true",
                    help="densify on AbsGS's absolute per-pixel gradients (gsplat's absgrad), with its own threshold "
                         "(densify.absgrad_threshold, default 0.0008)")
+    s.add_argument("--strategy", choices=("default", "mcmc"), default=None,
+                   help="densification: 'default' (the paper's clone / split / prune) or 'mcmc' (3DGS as Markov "
+                        "Chain Monte Carlo, gsplat's MCMCStrategy: relocation, growth up to --max-gaussians)")
+    s.add_argument("--max-gaussians", type=positive_int, default=None,
+                   help=f"--strategy mcmc: the most Gaussians the run may have (default {MCMCConfig().cap_max:,})")
     s.add_argument("--antialiased", action="store_true",
                    help="Mip-Splatting's 2D filter (gsplat's antialiased mode); the model must then be rendered "
                         "with it, which config.json and gaussians.xml record")

@@ -89,6 +89,24 @@ class DensifyConfig:
 
 
 @dataclass(frozen=True)
+class MCMCConfig:
+    """MCMC densification (Kheradmand et al. 2024, "3D Gaussian Splatting as Markov Chain Monte Carlo"), gsplat's
+    ``MCMCStrategy`` defaults; used with ``TrainConfig.strategy = "mcmc"`` (``--strategy mcmc``)."""
+
+    cap_max: int = 1_000_000                 # --max-gaussians: the number of Gaussians never exceeds this
+    refine_start_iter: int = 500             # relocate and grow when refine_start < step < refine_stop ...
+    refine_stop_iter: int = 25_000
+    refine_every: int = 100                  # ... and step % refine_every == 0
+    growth: float = 0.05                     # each refinement adds this fraction of the count (up to cap_max)
+    min_opacity: float = 0.005               # Gaussians at or below this opacity are dead and get relocated
+    noise_lr: float = 5e5                    # position noise: noise_lr times the position learning rate
+    opacity_reg: float = 0.01                # loss += opacity_reg * mean(opacity)
+    scale_reg: float = 0.01                  # loss += scale_reg * mean(exp(scales))
+    init_opacity: float = 0.5                # initial opacity (the paper's strategy: 0.1)
+    init_scale: float = 0.1                  # initial scale factor on the nearest-neighbour distance (paper: 1)
+
+
+@dataclass(frozen=True)
 class SceneConfig:
     """``mi-gs optimize scene.xml``: how a Mitsuba scene becomes training views (``mi_gaussians.data.scene_dataset``).
 
@@ -120,6 +138,8 @@ class TrainConfig:
     densify: DensifyConfig = DensifyConfig()
     raster: RasterConfig = RasterConfig()
     scene: SceneConfig = SceneConfig()       # used only when the input is a Mitsuba scene file
+    strategy: str = "default"                # densification: 'default' (the paper's, ``densify``) or 'mcmc' (``mcmc``)
+    mcmc: MCMCConfig = MCMCConfig()
     seed: int = 0
     checkpoint_every: int = 1000             # iterations between checkpoints (and the last iteration)
     eval_every: int = 1000                   # iterations between test-set evaluations for the curves (0: only at the end)

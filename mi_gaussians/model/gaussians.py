@@ -99,7 +99,9 @@ class Gaussians:
         write_ply(path, **self.numpy())
 
     @classmethod
-    def from_points(cls, xyz, rgb, sh_degree: int = 3, initial_opacity: float = 0.1) -> "Gaussians":
+    def from_points(cls, xyz, rgb, sh_degree: int = 3, initial_opacity: float = 0.1,
+                    scale_factor: float = 1.0) -> "Gaussians":
         from .init import init_from_points
 
-        return cls.from_numpy(**init_from_points(xyz, rgb, sh_degree=sh_degree, initial_opacity=initial_opacity))
+        return cls.from_numpy(**init_from_points(xyz, rgb, sh_degree=sh_degree, initial_opacity=initial_opacity,
+                                                 scale_factor=scale_factor))

@@ -42,24 +42,28 @@ def mean_knn_dist2(xyz, k: int = KNN) -> np.ndarray:
     return np.mean(d * d, axis=1)
 
 
-def init_scales(xyz, k: int = KNN, min_dist2: float = MIN_DIST2) -> np.ndarray:
-    """Isotropic log-scales (N, 3) float32: ``log(sqrt(max(mean_knn_dist2, min_dist2)))`` on each axis."""
+def init_scales(xyz, k: int = KNN, min_dist2: float = MIN_DIST2, factor: float = 1.0) -> np.ndarray:
+    """Isotropic log-scales (N, 3) float32: ``log(factor * sqrt(max(mean_knn_dist2, min_dist2)))`` on each axis."""
     d2 = np.maximum(mean_knn_dist2(xyz, k), min_dist2)
-    s = 0.5 * np.log(d2)
+    s = 0.5 * np.log(d2) + (np.log(factor) if factor != 1.0 else 0.0)
     return np.repeat(s[:, None], 3, axis=1).astype(np.float32)
 
 
-def init_from_points(xyz, rgb, sh_degree: int = 3, initial_opacity: float = 0.1) -> dict[str, np.ndarray]:
+def init_from_points(xyz, rgb, sh_degree: int = 3, initial_opacity: float = 0.1,
+                     scale_factor: float = 1.0) -> dict[str, np.ndarray]:
     """Raw Gaussian parameters initialized from points, keyed like ``Gaussians.from_numpy`` (all float32).
 
     ``xyz`` (N, 3) positions, ``rgb`` (N, 3) colours in [0, 1] (floats) or 0..255 (uint8 arrays, divided by 255),
-    ``sh_degree`` 0..3 (sets the shape of ``sh_rest``: (N, (d + 1)^2 - 1, 3) zeros), ``initial_opacity`` in (0, 1).
+    ``sh_degree`` 0..3 (sets the shape of ``sh_rest``: (N, (d + 1)^2 - 1, 3) zeros), ``initial_opacity`` in (0, 1),
+    ``scale_factor`` > 0 multiplies the scales (gsplat's ``init_scale``, 0.1 in its MCMC recipe).
     Returns means (N, 3), scales (N, 3), rotations (N, 4) = (1, 0, 0, 0), opacities (N,) = logit(initial_opacity),
     sh_dc (N, 3), sh_rest. Raises ValueError for empty input, mismatched shapes or non-finite values."""
     if not isinstance(sh_degree, (int, np.integer)) or not 0 <= int(sh_degree) <= 3:
         raise ValueError(f"sh_degree must be an integer in 0..3, got {sh_degree!r}")
     if not 0.0 < float(initial_opacity) < 1.0:
         raise ValueError(f"initial_opacity must be strictly between 0 and 1, got {initial_opacity!r}")
+    if not float(scale_factor) > 0.0 or not np.isfinite(float(scale_factor)):
+        raise ValueError(f"scale_factor must be a positive number, got {scale_factor!r}")
     xyz = np.asarray(xyz)
     rgb = np.asarray(rgb)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
@@ -81,7 +85,7 @@ def init_from_points(xyz, rgb, sh_degree: int = 3, initial_opacity: float = 0.1)
     k_rest = sh_coeff_count(sh_degree) - 1
     return {
         "means": xyz.astype(np.float32),
-        "scales": init_scales(xyz),
+        "scales": init_scales(xyz, factor=float(scale_factor)),
         "rotations": np.tile(np.array([1.0, 0.0, 0.0, 0.0], np.float32), (n, 1)),
         "opacities": np.full(n, logit(np.float64(initial_opacity)), dtype=np.float32),
         "sh_dc": rgb_to_sh_dc(rgb).astype(np.float32),

@@ -296,6 +296,37 @@ class GaussianAdam:
 
         self._update(values, moments)
 
+    def set_rows(self, rows, values: Mapping[str, object]) -> None:
+        """Overwrite the rows ``rows`` (indices; repeated indices must carry equal values) of the parameters in
+        ``values`` (key -> (len(rows), *row_shape), NumPy or ``TensorXf``) and zero the moments of those rows of
+        EVERY parameter: they are new Gaussians (MCMC relocation). Other rows, ``t`` and the rates are kept."""
+        unknown = [k for k in values if k not in self]
+        if unknown:
+            raise KeyError(f"set_rows: unknown parameter(s) {unknown}")
+        idx = row_index(rows, self.n)
+        k = dr.width(idx)
+        if k == 0:
+            return
+        flats = {}
+        for key, new in values.items():
+            flat, shape = _as_flat(new, mi.Float)
+            expect = (k,) + tuple(self._adam[key].shape[1:])
+            if tuple(shape) != expect:
+                raise ValueError(f"set_rows: {key} rows of shape {tuple(shape)}, expected {expect}")
+            flats[key] = flat
+
+        def write(zero_rows: bool):
+            def fn(key, flat, row_size):
+                out = dr.copy(dr.detach(flat))              # the scatter must not reach the old array
+                dr.scatter(out, 0.0 if zero_rows else flats[key], flat_index(idx, row_size))
+                return out
+            return fn
+
+        self._update(write(False), write(True), keys=list(flats))
+        rest = [key for key in self.keys() if key not in flats]
+        if rest:
+            self._update(None, write(True), keys=rest)
+
     def reset_moments(self, key: str, rows=None) -> None:
         """Zero the moments (and ``vmax``) of ``key``, for all rows or for ``rows`` (boolean mask or indices).
         ``t``, the value and its gradient are untouched (3DGS's opacity reset)."""

@@ -136,9 +136,11 @@ class DefaultStrategy(Strategy):
         arrays = {"grad_accum": np.array(state.grad_accum, dtype=np.float32),
                   "denom": np.array(state.denom, dtype=np.float32),
                   "max_radii": np.array(state.max_radii, dtype=np.int32)}
-        return arrays, {"seed": self.seed, "draws": state.draws}
+        return arrays, {"kind": "default", "seed": self.seed, "draws": state.draws}
 
     def import_state(self, arrays: dict, meta: dict, n: int) -> DensifyState:
+        if meta and meta.get("kind", "default") != "default":
+            raise ValueError("the checkpoint was written by another densification strategy")
         state = self.initialize_state(n)
         if arrays:
             lengths = {len(arrays[k]) for k in ("grad_accum", "denom", "max_radii")}

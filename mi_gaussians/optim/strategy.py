@@ -27,6 +27,11 @@ iterations where :meth:`Strategy.refines_at` says rows or values may change (tho
             strategy.update_state(state, out, active=ok)
         params.step(active=ok)
 
+Two more hooks run on every iteration, in both paths, as device work: :meth:`Strategy.regularization` adds a term to
+the loss before the backward pass, and :meth:`Strategy.step_post_update` changes values after the Adam step (MCMC's
+position noise). A strategy also says how the Gaussians of a run start (:attr:`Strategy.init_opacity`,
+:attr:`Strategy.init_scale`) and how many there may be (:attr:`Strategy.max_gaussians`).
+
 To add a strategy: subclass :class:`Strategy`, give it a state dataclass, implement the hooks (and
 :meth:`Strategy.export_state` / :meth:`Strategy.import_state` for checkpoints), and select it in the trainer.
 :class:`~mi_gaussians.optim.densify.DefaultStrategy` (the paper's adaptive density control) is the reference
@@ -53,10 +58,18 @@ class StepInfo:
     split: int = 0            # originals split
     pruned: int = 0           # removed by the prune tests
     reset: int = 0            # opacities lowered by the reset
+    relocated: int = 0        # dead Gaussians moved onto live ones (MCMC)
+    added: int = 0            # Gaussians added by sampling live ones (MCMC)
 
 
 class Strategy:
     """Base class of densification strategies (see the module docstring)."""
+
+    #: Opacity of the initial Gaussians, and the factor on their nearest-neighbour scale (the paper's: 0.1 and 1).
+    init_opacity: float = 0.1
+    init_scale: float = 1.0
+    #: The most Gaussians the strategy allows (None: no bound); a larger initial point cloud is subsampled to it.
+    max_gaussians: int | None = None
 
     def initialize_state(self, n: int):
         """A fresh state for a model of ``n`` Gaussians."""
@@ -68,6 +81,17 @@ class Strategy:
         what densification needs from the backward pass (``RenderOutput.means2d_grad``), so the default does
         nothing; a strategy that must mark something for the backward pass overrides it (e.g.
         ``out.request_absgrad()``)."""
+
+    def regularization(self, params):
+        """A term added to the loss, differentiable in ``params``' tensors (a 1-element ``mi.Float``), or None. Device
+        arithmetic only: a frozen step records it."""
+        return None
+
+    def step_post_update(self, params, state, step, means_lr, active=True) -> None:
+        """Called after the Adam step of every iteration (frozen or traced; also after a refinement): device work
+        only, left undone where the 1-element ``mi.Bool`` ``active`` is False. ``step``: the iteration as a
+        1-element ``mi.UInt32``; ``means_lr``: this iteration's position learning rate (1-element ``mi.Float``).
+        The default does nothing."""
 
     def step_post_backward(self, params, state, step: int, out) -> StepInfo:
         """Called after ``dr.backward`` and before the Adam step: update the statistics in ``state`` from ``out``

@@ -63,6 +63,7 @@ class StepInputs:
     view: ViewParams
     background: tuple                     # (r, g, b) 1-element mi.Float each
     means_lr: "mi.Float"                  # the position learning rate of this iteration (1 element)
+    step: "mi.UInt32"                     # the iteration (1 element; keys the strategy's per-iteration noise)
 
 
 def composite_target(target, transparency, background, fixed_background) -> "mi.TensorXf":
@@ -97,12 +98,16 @@ class TrainStep:
             strategy.step_pre_backward(params, state, None, out)
             target = composite_target(inputs.target, inputs.transparency, inputs.background, fixed)
             loss = photometric_loss(out.rgb, target, lam)
+            reg = strategy.regularization(params)
+            if reg is not None:
+                loss = loss + reg
             dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
             ok = valid & out.fits & dr.isfinite(loss)
             if update_state:
                 strategy.update_state(state, out, active=ok)
             params.set_learning_rate("means", inputs.means_lr)
             params.step(active=ok)
+            strategy.step_post_update(params, state, inputs.step, inputs.means_lr, active=ok)
             return loss, ok, mi.UInt32(out.n_instances)
 
         # recordings are made when the model's size changes (densification), so many over a run: no warning

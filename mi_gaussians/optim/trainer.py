@@ -42,6 +42,8 @@ from ..raster.rasterize import render
 from .. import report
 from .adam import GaussianAdam
 from .densify import DefaultStrategy
+from .mcmc import MCMCStrategy
+from .strategy import Strategy
 from .losses import photometric_loss
 from .schedules import expon_lr, sh_degree_at
 from .train_step import StepInputs, TrainStep, capacity_for, composite_target
@@ -104,10 +106,33 @@ class ViewSampler:
         self.stack = list(s["stack"])
 
 
-def initial_gaussians(ds: Dataset, sh_degree: int) -> Gaussians:
+def initial_gaussians(ds: Dataset, sh_degree: int, strategy: Strategy | None = None, seed: int = 0) -> Gaussians:
+    """The Gaussians a run starts from: the dataset's points with the strategy's initial opacity and scale factor,
+    subsampled (uniformly, ``seed``) to the strategy's bound on the number of Gaussians."""
     if ds.points_xyz is None or len(ds.points_xyz) == 0:
         raise ValueError(f"{ds.root}: the dataset has no initial points")
-    return Gaussians.from_points(ds.points_xyz, ds.points_rgb, sh_degree=sh_degree)
+    xyz, rgb = ds.points_xyz, ds.points_rgb
+    cap = None if strategy is None else strategy.max_gaussians
+    if cap is not None and len(xyz) > cap:
+        keep = np.sort(np.random.default_rng(seed).choice(len(xyz), size=cap, replace=False))
+        xyz, rgb = xyz[keep], rgb[keep]
+    if strategy is None:
+        return Gaussians.from_points(xyz, rgb, sh_degree=sh_degree)
+    return Gaussians.from_points(xyz, rgb, sh_degree=sh_degree, initial_opacity=strategy.init_opacity,
+                                 scale_factor=strategy.init_scale)
+
+
+def make_strategy(cfg: TrainConfig, extent: float, white_background: bool) -> Strategy:
+    """The densification strategy ``cfg.strategy`` names ('default': the paper's, 'mcmc')."""
+    if cfg.strategy == "default":
+        return DefaultStrategy(cfg.densify, extent, seed=cfg.seed + 2, white_background=white_background)
+    if cfg.strategy == "mcmc":
+        return MCMCStrategy(cfg.mcmc, seed=cfg.seed + 2)
+    raise ValueError(f"unknown densification strategy {cfg.strategy!r} (expected one of {', '.join(STRATEGIES)})")
+
+
+#: The densification strategies ``TrainConfig.strategy`` may name.
+STRATEGIES = ("default", "mcmc")
 
 
 class Trainer:
@@ -130,9 +155,9 @@ class Trainer:
         self.transparency = None
         if cfg.optim.random_background:
             self.transparency = [owned_tensor(1.0 - v.load_alpha()[..., None]) for v in ds.train]
-        self.params = GaussianAdam(initial_gaussians(ds, cfg.optim.sh_degree), cfg.optim, self.extent)
-        self.strategy = DefaultStrategy(cfg.densify, self.extent, seed=cfg.seed + 2,
-                                        white_background=self.background == (1.0, 1.0, 1.0))
+        self.strategy = make_strategy(cfg, self.extent, white_background=self.background == (1.0, 1.0, 1.0))
+        self.params = GaussianAdam(initial_gaussians(ds, cfg.optim.sh_degree, self.strategy, seed=cfg.seed + 3),
+                                   cfg.optim, self.extent)
         self.strategy_state = self.strategy.initialize_state(self.params.n)
         # the frozen training step (see train_step.py) and the state of the loop around it
         self.train_step = TrainStep(self.strategy, cfg.raster, cfg.optim.lambda_dssim, self.background,
@@ -233,6 +258,9 @@ class Trainer:
         out = render(g, view.camera, background=bg, sh_degree=degree, cfg=cfg.raster)
         self.strategy.step_pre_backward(self.params, self.strategy_state, step, out)
         loss = photometric_loss(out.rgb, self.target(idx, bg), o.lambda_dssim)
+        reg = self.strategy.regularization(self.params)
+        if reg is not None:
+            loss = loss + reg
         # (a view where nothing is visible gives a loss that does not depend on the parameters)
         dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
         value = float(loss[0])
@@ -245,6 +273,8 @@ class Trainer:
             # (after a densification step the reference's parameters are new tensors without gradients, so its
             # Adam step skips them: we do the same)
             self.params.step()
+        self.strategy.step_post_update(self.params, self.strategy_state, dr.opaque(mi.UInt32, step),
+                                       dr.opaque(mi.Float, self._means_lr(step)))
         return value, int(out.n_instances)
 
     def _traced_at(self, step: int) -> bool:
@@ -274,7 +304,7 @@ class Trainer:
         inputs = StepInputs(target=self.targets[idx],
                             transparency=None if self.transparency is None else self.transparency[idx],
                             view=self._view_params(idx), background=tuple(dr.opaque(mi.Float, b) for b in bg),
-                            means_lr=dr.opaque(mi.Float, self._means_lr(step)))
+                            means_lr=dr.opaque(mi.Float, self._means_lr(step)), step=dr.opaque(mi.UInt32, step))
         degree = sh_degree_at(step, self.params.gaussians.sh_degree, cfg.optim.sh_increase_interval)
         if self._valid is None:
             self._valid = dr.opaque(mi.Bool, True)

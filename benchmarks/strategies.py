@@ -1,0 +1,88 @@
+"""Densification strategies at 7k iterations, in one run per dataset: the paper's default, ``--absgrad``, and
+``--strategy mcmc`` capped at the default's final count and at half of it (the cap is read from the default run of
+this benchmark). Prints PSNR / SSIM on the held-out views, the final count and the training minutes.
+
+    python benchmarks/strategies.py mi_objects_colmap             # ../shared/data/mi_objects/colmap, 200x200
+    python benchmarks/strategies.py fox maryrose                   # the real captures (about 1 h per run each)
+    python benchmarks/strategies.py mi_objects_colmap --only default mcmc_full
+
+Each model is trained with the command line (``mi-gs optimize``), as a user would; a finished run in the output
+folder (default /tmp/mi_gs_strategies/<dataset>/<setup>) is reused, an interrupted one resumed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = (ROOT / ".." / "shared" / "data").resolve()
+ITERATIONS = 7000
+
+# dataset -> (folder under ../shared/data, optimize options) as the README's training table runs them
+DATASETS = {
+    "mi_objects_colmap": ("mi_objects/colmap", ["--white-background"]),
+    "fox": ("fox", ["-r", "4"]),
+    "maryrose": ("maryrose", ["-r", "8", "--white-background"]),
+}
+SETUPS = ("default", "absgrad", "mcmc_full", "mcmc_half")
+
+
+def train(src: Path, out: Path, options: list[str]) -> dict:
+    if (out / "metrics.json").is_file() and (out / "point_cloud.ply").is_file():
+        print(f"{out}: trained already, reused", file=sys.stderr)
+        return json.loads((out / "metrics.json").read_text())
+    cmd = [str(Path(sys.executable).parent / "mi-gs"), "optimize", str(src), "-o", str(out), "--iterations",
+           str(ITERATIONS), "--eval-every", "0", "--quiet", *options]
+    if (out / "checkpoints" / "ckpt.npz").is_file():
+        cmd.append("--resume")
+    t0 = time.time()
+    subprocess.run(cmd, check=True)
+    print(f"{out}: trained in {time.time() - t0:.0f} s", file=sys.stderr)
+    return json.loads((out / "metrics.json").read_text())
+
+
+def run_dataset(name: str, out_root: Path, only: set[str]) -> list[tuple]:
+    folder, extra = DATASETS[name]
+    src = DATA / folder
+    if not src.is_dir():
+        print(f"{name}: {src} not found, skipped", file=sys.stderr)
+        return []
+    rows = []
+    default = train(src, out_root / name / "default", extra)
+    cap = int(default["gaussians"])
+    options = {"default": [], "absgrad": ["--absgrad"],
+               "mcmc_full": ["--strategy", "mcmc", "--max-gaussians", str(cap)],
+               "mcmc_half": ["--strategy", "mcmc", "--max-gaussians", str(cap // 2)]}
+    for setup in SETUPS:
+        if setup not in only:
+            continue
+        m = default if setup == "default" else train(src, out_root / name / setup, extra + options[setup])
+        rows.append((name, setup, " ".join(options[setup]) or "(default)", m["mean"]["psnr"], m["mean"]["ssim"],
+                     m["gaussians"], m["training_seconds"] / 60))
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("datasets", nargs="+", choices=sorted(DATASETS))
+    ap.add_argument("--only", nargs="+", choices=SETUPS, default=list(SETUPS))
+    ap.add_argument("--out", default="/tmp/mi_gs_strategies")
+    args = ap.parse_args(argv)
+    rows = []
+    for name in args.datasets:
+        rows += run_dataset(name, Path(args.out), set(args.only))
+    print(f"\n{ITERATIONS} iterations; PSNR / SSIM on the held-out views\n")
+    print("| dataset | strategy | options | PSNR | SSIM | Gaussians | minutes |")
+    print("|---|---|---|---:|---:|---:|---:|")
+    for name, setup, opts, psnr, ssim, n, minutes in rows:
+        print(f"| {name} | {setup} | `{opts}` | {psnr:.2f} | {ssim:.4f} | {n:,} | {minutes:.1f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
