@@ -184,6 +184,10 @@ def _model_raster_config(ply: Path, antialiased: bool | None):
     from .config import RasterConfig
 
     cfg = RasterConfig()
+    if ply.suffix.lower() == ".spz" and antialiased is None:      # (an .spz file records it)
+        from .model.web_formats import read_model
+
+        return dataclasses.replace(cfg, antialiased=bool(read_model(ply)[1]))
     if (ply.parent / run_folder.CONFIG).is_file():
         try:
             cfg = run_folder.saved_config(run_folder.read_saved(ply.parent, ""), ply.parent).raster
@@ -201,7 +205,7 @@ def _render_gaussians_views(args, views, color_space: str, out_paths) -> None:
     from .model.gaussians import Gaussians
     from .raster.rasterize import render
 
-    g = Gaussians.load_ply(args.input)
+    g = Gaussians.load(args.input)
     bg = _background(args.background)
     cfg = _model_raster_config(Path(args.input), args.antialiased)
     for (name, cam), outs in tqdm(list(zip(views, out_paths)), desc="render", unit="view", disable=len(views) < 2):
@@ -275,8 +279,8 @@ def cmd_render(args) -> int:
     out = Path(args.output)
     if src.suffix.lower() == ".xml":
         return _render_scene_file(args, src, out)
-    if src.suffix.lower() != ".ply":
-        raise InputError(f"{src}: expected a 3DGS .ply model or a Mitsuba scene .xml")
+    if src.suffix.lower() not in MODEL_SUFFIXES:
+        raise InputError(f"{src}: expected a model (.ply, .splat or .spz) or a Mitsuba scene .xml")
     if (args.camera is None) == (args.dataset is None):
         raise InputError("give exactly one of --camera CAM.json or --dataset DIR")
     if args.dataset is not None:
@@ -290,6 +294,46 @@ def cmd_render(args) -> int:
     cam = Camera.from_json(args.camera)
     _render_gaussians_views(args, [(cam.name or "view", cam)], args.color_space, [outputs])
     print(out)
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------------- export
+MODEL_SUFFIXES = (".ply", ".splat", ".spz")
+
+
+def cmd_export(args) -> int:
+    """A model (.ply, .splat or .spz) written in another of these formats, optionally with fewer SH bands."""
+    import os
+
+    from .io_utils import check_output_file
+    from .model.web_formats import drop_sh_bands, read_model, write_model
+
+    src, out = Path(args.input), Path(args.output)
+    if not src.is_file():
+        raise InputError(f"{src}: not found")
+    if src.suffix.lower() not in MODEL_SUFFIXES:
+        raise InputError(f"{src}: expected a model (.ply, .splat or .spz)")
+    if out.suffix.lower() not in MODEL_SUFFIXES:
+        raise InputError(f"{out}: unknown output format {out.suffix or '(none)'} (use .ply, .splat or .spz)")
+    check_output_file(out)
+    if out.exists() and not args.overwrite:
+        raise InputError(f"{out}: exists (give --overwrite to replace it)")
+    if out.exists() and out.resolve() == src.resolve():
+        raise InputError(f"{out}: is the input model")
+    params, _ = read_model(src)
+    if args.sh_degree is not None:
+        params = drop_sh_bands(params, args.sh_degree)
+    if out.suffix.lower() == ".splat" and params["sh_rest"].shape[1]:
+        print(f"mi-gs: note: .splat holds SH degree 0 only; the higher bands of {src} are dropped", file=sys.stderr)
+    antialiased = _model_raster_config(src, args.antialiased).antialiased
+    if antialiased and out.suffix.lower() != ".spz":
+        print(f"mi-gs: note: {out.suffix} cannot record that {src} renders anti-aliased: render it with "
+              "--antialiased", file=sys.stderr)
+    write_model(out, params, antialiased=antialiased)
+    size, before = os.path.getsize(out), os.path.getsize(src)
+    print(json.dumps({"output": str(out), "gaussians": int(len(params["means"])), "bytes": size,
+                      "bytes_per_gaussian": round(size / len(params["means"]), 2),
+                      "size_ratio": round(before / size, 2)}, indent=2))
     return 0
 
 
@@ -619,8 +663,9 @@ def _add_info(sub) -> None:
 def _add_render(sub) -> None:
     from .config import DataConfig
 
-    s = sub.add_parser("render", help="render a 3DGS .ply (from a camera JSON or a dataset's views) or a scene .xml")
-    s.add_argument("input", help="model.ply or scene.xml")
+    s = sub.add_parser("render", help="render a model (.ply, .splat, .spz; from a camera JSON or a dataset's views) "
+                                      "or a scene .xml")
+    s.add_argument("input", help="model.ply|.splat|.spz or scene.xml")
     s.add_argument("--camera", help="camera JSON (see README)")
     s.add_argument("--dataset", help="dataset folder whose views to render")
     s.add_argument("--split", choices=("train", "test", "all"), default="test")
@@ -635,7 +680,7 @@ def _add_render(sub) -> None:
     s.add_argument("--alpha", action="store_true", help="write an alpha channel")
     s.add_argument("--antialiased", action=argparse.BooleanOptionalAction, default=None,
                    help="render with Mip-Splatting's 2D filter (default: as the run whose config.json sits beside "
-                        "the .ply was trained, else off)")
+                        "the model was trained, or as an .spz file records, else off)")
     s.add_argument("--spp", type=positive_int, default=None, help="samples per pixel (scene .xml only)")
     s.add_argument("--sensor", type=non_negative_int, default=0, help="sensor index (scene .xml only)")
     _add_define(s, "set a scene parameter (scene .xml only), as mitsuba -D; repeatable")
@@ -731,6 +776,20 @@ def _add_eval(sub) -> None:
     s.set_defaults(func=cmd_eval)
 
 
+def _add_export(sub) -> None:
+    s = sub.add_parser("export", help="write a model as .splat (32 bytes per Gaussian, web viewers), .spz (Niantic's "
+                                      "compressed format) or .ply")
+    s.add_argument("input", help="model.ply, .splat or .spz")
+    s.add_argument("-o", "--output", required=True, help="out.splat, out.spz or out.ply")
+    s.add_argument("--sh-degree", type=sh_degree, default=None,
+                   help="keep the SH bands up to this degree (default: all the model has; .splat keeps degree 0)")
+    s.add_argument("--antialiased", action=argparse.BooleanOptionalAction, default=None,
+                   help="record in an .spz that the model renders anti-aliased (default: as the run whose "
+                        "config.json sits beside the model was trained)")
+    s.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    s.set_defaults(func=cmd_export)
+
+
 def _add_convert(sub) -> None:
     from .config import ConvertConfig
 
@@ -761,7 +820,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="mi-gs", description="3D Gaussian Splatting as a Mitsuba 3 plugin.")
     p.add_argument("--variant", default=None, help=_VARIANT_HELP)
     sub = p.add_subparsers(dest="command", required=True)
-    for add in (_add_info, _add_render, _add_optimize, _add_eval, _add_convert):
+    for add in (_add_info, _add_render, _add_optimize, _add_eval, _add_export, _add_convert):
         add(sub)
     for s in sub.choices.values():
         # (also after the subcommand; SUPPRESS: given there, it replaces the one before the subcommand)

@@ -93,6 +93,14 @@ class Gaussians:
 
         return cls.from_numpy(**read_ply(path, renderable=True))
 
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Gaussians":
+        """A model from a ``.ply`` (as :meth:`load_ply`), ``.splat`` or ``.spz`` file (by the suffix; see
+        :mod:`.web_formats`)."""
+        from .web_formats import read_model
+
+        return cls.from_numpy(**read_model(path)[0])
+
     def save_ply(self, path: str | os.PathLike) -> None:
         from .ply import write_ply
 

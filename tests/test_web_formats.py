@@ -1,0 +1,206 @@
+""".splat and .spz (mi_gaussians.model.web_formats): round trips within each format's quantization (the bounds are
+the formats' step sizes), the byte layout of a hand-computed Gaussian, the RDF -> RUB frame of .spz checked against
+the SH basis itself, version 2 files, malformed files, and ``mi-gs export`` / ``render`` on the results."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import math
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mi_gaussians.conventions import SH_C0
+from mi_gaussians.model import web_formats as wf
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ROOT / "scenes" / "tiny_gaussians.ply"
+CAMERA = ROOT / "scenes" / "tiny_gaussians_camera.json"
+
+
+def _model(n=500, degree=3, seed=0) -> dict:
+    rng = np.random.default_rng(seed)
+    k = (degree + 1) ** 2 - 1
+    return {"means": rng.uniform(-3, 3, (n, 3)).astype(np.float32),
+            "scales": rng.uniform(-6, -1, (n, 3)).astype(np.float32),
+            "rotations": rng.normal(size=(n, 4)).astype(np.float32),
+            "opacities": rng.uniform(-4, 4, n).astype(np.float32),
+            "sh_dc": rng.uniform(-1.5, 1.5, (n, 3)).astype(np.float32),
+            "sh_rest": rng.uniform(-0.9, 0.9, (n, k, 3)).astype(np.float32)}
+
+
+def _sig(x):
+    return 1 / (1 + np.exp(-np.asarray(x, np.float64)))
+
+
+def _rotation_matrices(q):
+    q = np.asarray(q, np.float64)
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                     2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                     2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1)
+
+
+def test_splat_round_trip_and_order(tmp_path):
+    p = _model()
+    path = tmp_path / "m.splat"
+    wf.write_model(path, p)
+    assert path.stat().st_size == 32 * 500
+    back = wf.read_splat(path)
+    importance = np.exp(p["scales"].astype(np.float64).sum(1)) * _sig(p["opacities"])
+    order = np.argsort(-importance, kind="stable")
+    np.testing.assert_array_equal(back["means"], p["means"][order])                     # float32: exact
+    np.testing.assert_allclose(np.exp(back["scales"].astype(np.float64)), np.exp(p["scales"][order].astype(np.float64)),
+                               rtol=1e-6)
+    rgb = np.clip(0.5 + SH_C0 * p["sh_dc"][order].astype(np.float64), 0, 1)
+    assert np.abs(0.5 + SH_C0 * back["sh_dc"] - rgb).max() <= 0.5 / 255 + 1e-6
+    assert np.abs(_sig(back["opacities"]) - _sig(p["opacities"][order])).max() <= 0.5 / 255 + 1e-6
+    err = np.abs(_rotation_matrices(back["rotations"]) - _rotation_matrices(p["rotations"][order])).max()
+    assert err < 0.03                                                    # 1/256 per quaternion component
+    assert back["sh_rest"].shape == (500, 0, 3)
+
+
+def test_splat_bytes_of_one_gaussian():
+    p = {"means": np.array([[1.0, -2.0, 0.5]], np.float32), "scales": np.array([[0.0, -1.0, 0.5]], np.float32),
+         "rotations": np.array([[2.0, 0.0, 0.0, 0.0]], np.float32), "opacities": np.array([0.0], np.float32),
+         "sh_dc": np.array([[0.0, (1.0 - 0.5) / SH_C0, (0.0 - 0.5) / SH_C0]], np.float32),
+         "sh_rest": np.zeros((1, 3, 3), np.float32)}
+    expect = struct.pack("<3f3f", 1.0, -2.0, 0.5, *np.exp([0.0, -1.0, 0.5]).astype(np.float32)) + bytes([128, 255, 0, 128]) \
+        + bytes([255, 128, 128, 128])
+    assert wf.splat_bytes(p) == expect
+
+
+def test_spz_round_trip_within_quantization(tmp_path):
+    p = _model()
+    path = tmp_path / "m.spz"
+    wf.write_model(path, p, antialiased=True)
+    back, aa = wf.read_spz(path)
+    assert aa is True
+    assert np.abs(back["means"] - p["means"]).max() <= 0.5 / 4096 + 1e-6
+    assert np.abs(back["scales"] - p["scales"]).max() <= 0.5 / 16 + 1e-6
+    assert np.abs(_sig(back["opacities"]) - _sig(p["opacities"])).max() <= 0.5 / 255 + 1e-6
+    assert np.abs(back["sh_dc"] - p["sh_dc"]).max() <= 0.5 / (0.15 * 255) + 1e-6
+    rest = np.abs(back["sh_rest"] - p["sh_rest"])
+    assert rest[:, :3].max() <= (4 + 0.5) / 128 + 1e-6 and rest[:, 3:].max() <= (8 + 0.5) / 128 + 1e-6
+    err = np.abs(_rotation_matrices(back["rotations"]) - _rotation_matrices(p["rotations"])).max()
+    assert err < 0.01                                                    # 9-bit smallest three
+    # a model of degree 1 keeps its degree, fewer bands are dropped on request
+    one = wf.drop_sh_bands(p, 1)
+    wf.write_model(path, one)
+    assert wf.read_spz(path)[0]["sh_rest"].shape == (500, 3, 3) and wf.read_spz(path)[1] is False
+    with pytest.raises(ValueError, match="SH degree 1"):
+        wf.drop_sh_bands(one, 3)
+
+
+def test_spz_layout_and_frame():
+    """Header, 24-bit fixed point of (x, -y, -z) (the reference's RUB frame) and the SH sign table, which must be
+    the parity of each basis function under y -> -y, z -> -z."""
+    import mitsuba as mi
+
+    from mi_gaussians.model.sh import sh_basis
+
+    p = _model(n=1, degree=1)
+    p["means"][:] = [1.0, 2.0, -0.25]
+    raw = gzip.decompress(wf.spz_bytes(p))
+    assert struct.unpack("<IIIBBBB", raw[:16]) == (0x5053474E, 3, 1, 1, 12, 0, 0)
+    fixed = [int.from_bytes(raw[16 + 3 * i:19 + 3 * i], "little", signed=True) for i in range(3)]
+    assert fixed == [4096, -8192, 1024]
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(64, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    f = d * [1, -1, -1]
+    b = np.array([np.array(x) for x in sh_basis(mi.Vector3f(*map(mi.Float, d.T.astype(np.float32))), 3)])
+    bf = np.array([np.array(x) for x in sh_basis(mi.Vector3f(*map(mi.Float, f.T.astype(np.float32))), 3)])
+    np.testing.assert_allclose(bf[1:], b[1:] * wf.SPZ_SH_FLIP[:, None], atol=1e-6)
+
+
+def test_smallest_three_and_version_2(tmp_path):
+    rng = np.random.default_rng(3)
+    q = rng.normal(size=(2000, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    back = wf._unpack_smallest_three(wf._pack_smallest_three(q))
+    assert np.abs(_rotation_matrices(back) - _rotation_matrices(q)).max() < 0.01
+    # a version-2 file (3-byte rotations), written here from the published layout
+    p = _model(n=50, degree=0)
+    raw = bytearray(gzip.decompress(wf.spz_bytes(p)))
+    n = 50
+    rot_at = 16 + 16 * n
+    qn = p["rotations"] / np.linalg.norm(p["rotations"], axis=1, keepdims=True) * [1, 1, -1, -1]
+    qn = qn * np.where(qn[:, :1] < 0, -1, 1)
+    v2 = np.clip(np.round(qn[:, 1:] * 127.5 + 127.5), 0, 255).astype(np.uint8).tobytes()
+    raw[4:8] = struct.pack("<I", 2)
+    raw = bytes(raw[:rot_at]) + v2 + bytes(raw[rot_at + 4 * n:])
+    (tmp_path / "v2.spz").write_bytes(gzip.compress(raw))
+    back, _ = wf.read_spz(tmp_path / "v2.spz")
+    xyz = np.frombuffer(v2, np.uint8).reshape(n, 3) / 127.5 - 1.0               # the published decoding
+    w = np.sqrt(np.maximum(0.0, 1.0 - np.sum(xyz * xyz, axis=1)))
+    np.testing.assert_allclose(back["rotations"], np.c_[w, xyz] * [1, 1, -1, -1], atol=1e-6)
+    near = np.abs(_rotation_matrices(back["rotations"]) - _rotation_matrices(p["rotations"])).max(axis=1)
+    assert np.all(near[np.abs(qn[:, 0]) > 0.3] < 0.03)     # (v2 loses w where it is small: why v3 exists)
+    assert np.abs(back["means"] - p["means"]).max() <= 0.5 / 4096 + 1e-6
+
+
+@pytest.mark.parametrize("name, data, words", [
+    ("a.splat", b"", "no Gaussians"),
+    ("b.splat", b"\0" * 33, "whole number"),
+    ("c.splat", struct.pack("<3f3f", 0, 0, 0, 0, 1, 1) + bytes(8), "scale <= 0"),
+    ("d.spz", b"not gzip", "not a gzip"),
+    ("e.spz", gzip.compress(b"\0" * 20), "not a .spz file"),
+    ("f.spz", gzip.compress(struct.pack("<IIIBBBB", 0x5053474E, 3, 5, 0, 12, 0, 0) + bytes(10)), "expected for 5"),
+    ("g.spz", gzip.compress(struct.pack("<IIIBBBB", 0x5053474E, 9, 1, 0, 12, 0, 0)), "version 9"),
+    ("h.spz", struct.pack("<IIIBBBB", 0x5053474E, 4, 1, 0, 12, 0, 0), "zstd"),
+    ("i.spz", gzip.compress(struct.pack("<IIIBBBB", 0x5053474E, 3, 1, 5, 12, 0, 0)), "SH degree 5"),
+])
+def test_malformed_files_give_one_line(tmp_path, name, data, words):
+    path = tmp_path / name
+    path.write_bytes(data)
+    with pytest.raises(ValueError) as e:
+        wf.read_model(path)
+    assert str(path) in str(e.value) and words in str(e.value) and "\n" not in str(e.value)
+
+
+def _mi_gs(*args):
+    return subprocess.run([sys.executable, "-m", "mi_gaussians.cli", *map(str, args)], capture_output=True, text=True)
+
+
+def _psnr(a, b):
+    return 10 * math.log10(1 / np.mean((a - b) ** 2))
+
+
+def test_cli_export_and_render(tmp_path):
+    from mi_gaussians.data.images import read_image
+
+    ref = tmp_path / "ply.exr"
+    assert _mi_gs("render", TINY, "--camera", CAMERA, "-o", ref).returncode == 0
+    ref_img = read_image(ref)
+    sizes = {}
+    for fmt, floor in ((".spz", 35.0), (".splat", 35.0)):
+        out = tmp_path / f"m{fmt}"
+        r = _mi_gs("export", TINY, "-o", out)
+        assert r.returncode == 0, r.stderr
+        info = json.loads(r.stdout)
+        sizes[fmt] = info["bytes"]
+        assert info["gaussians"] == 2000 and info["bytes"] == out.stat().st_size
+        img = tmp_path / f"{fmt[1:]}.exr"
+        r = _mi_gs("render", out, "--camera", CAMERA, "-o", img)
+        assert r.returncode == 0, r.stderr
+        assert _psnr(read_image(img)[..., :3], ref_img[..., :3]) > floor
+    assert sizes[".splat"] == 32 * 2000 and sizes[".spz"] < sizes[".splat"]
+    # back to .ply, fewer bands
+    r = _mi_gs("export", tmp_path / "m.spz", "-o", tmp_path / "back.ply", "--sh-degree", "0")
+    assert r.returncode == 0, r.stderr
+    from mi_gaussians.model.gaussians import Gaussians
+
+    assert Gaussians.load(tmp_path / "back.ply").sh_degree == 0
+    for args, words in (((tmp_path / "m.spz", "-o", tmp_path / "back.ply"), "--overwrite"),
+                        ((TINY, "-o", tmp_path / "x.obj"), "unknown output format"),
+                        ((tmp_path / "nothing.ply", "-o", tmp_path / "y.spz"), "not found"),
+                        ((TINY, "-o", tmp_path / "z.spz", "--sh-degree", "3"), "SH degree 1")):
+        r = _mi_gs("export", *args)
+        assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
