@@ -337,6 +337,92 @@ def cmd_export(args) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------------------------------ view
+def _viewer_config(args):
+    from .viewer import ViewerConfig
+
+    return ViewerConfig(host=args.host, port=args.port, max_size=args.max_size, moving_size=args.moving_size)
+
+
+def _dataset_views(saved: dict, cfg, out: Path, split: str = "all"):
+    """(ViewEntry list, colour space, background) of the dataset a run was trained on; no views (and a warning) when
+    it cannot be loaded any more."""
+    from .viewer import ViewEntry
+
+    try:
+        ds = _eval_dataset(saved, cfg, out, None)
+    except (InputError, ValueError, OSError, RuntimeError) as e:
+        print(f"mi-gs: warning: the run's dataset cannot be loaded ({e}); viewing without its cameras",
+              file=sys.stderr)
+        return [], "srgb", tuple(cfg.data.background)
+    return _entries(ds), ds.color_space, tuple(ds.background)
+
+
+def _entries(ds):
+    from .viewer import ViewEntry
+
+    return [ViewEntry(f"{kind} {v.name}", v.camera, v.load_image) for kind, views in (("train", ds.train),
+                                                                                      ("test", ds.test))
+            for v in views]
+
+
+def _default_camera(g):
+    """A camera looking along +z at a model's centre from 2.5 times its radius (90 % of the centres inside)."""
+    import numpy as np
+
+    from .data.camera import Camera
+
+    means = np.array(g.means, np.float64).reshape(-1, 3)
+    centre = np.median(means, axis=0)
+    radius = float(np.percentile(np.linalg.norm(means - centre, axis=1), 90)) or 1.0
+    w2c = np.eye(4)
+    w2c[:3, 3] = -(centre - [0.0, 0.0, 2.5 * radius])
+    return Camera(width=800, height=600, fx=600.0, fy=600.0, cx=400.0, cy=300.0, world_to_camera=w2c, name="default")
+
+
+def cmd_view(args) -> int:
+    from . import run_folder
+    from .data.camera import Camera
+    from .model.gaussians import Gaussians
+    from .viewer import StaticModel, Viewer
+
+    src = Path(args.input)
+    if not src.exists():
+        raise InputError(f"{src}: not found")
+    model = src / run_folder.MODEL if src.is_dir() else src
+    if src.is_dir() and not model.is_file():
+        raise InputError(f"{model}: missing (is {src} an mi-gs optimize output folder?)")
+    if model.suffix.lower() not in MODEL_SUFFIXES:
+        raise InputError(f"{src}: expected a model (.ply, .splat or .spz) or an mi-gs optimize output folder")
+    raster = _model_raster_config(model, args.antialiased)
+    views, color_space, background = [], "srgb", (0.0, 0.0, 0.0)
+    if (model.parent / run_folder.CONFIG).is_file():
+        try:
+            saved = run_folder.read_saved(model.parent, "")
+            views, color_space, background = _dataset_views(saved, run_folder.saved_config(saved, model.parent),
+                                                            model.parent)
+        except ValueError as e:
+            print(f"mi-gs: warning: {e}; viewing the model alone", file=sys.stderr)
+    if args.background is not None:
+        background = _background(args.background)
+    g = Gaussians.load(model)
+    initial = Camera.from_json(args.camera) if args.camera else None
+    if initial is None and not views:
+        initial = _default_camera(g)
+    viewer = Viewer(StaticModel(g), views, _viewer_config(args), raster=raster, color_space=color_space,
+                    background=background, title=f"mi-gs view {src.name}", initial=initial)
+    try:
+        viewer.start()
+    except OSError as e:
+        raise InputError(f"--host {args.host} --port {args.port}: cannot serve there ({e.strerror or e})") from None
+    print(f"mi-gs view: {g.n:,} Gaussians at {viewer.url} (Ctrl-C stops)", flush=True)
+    try:
+        viewer.serve_forever()
+    finally:
+        viewer.stop()
+    return 0
+
+
 # -------------------------------------------------------------------------------------------------- optimize
 def _is_scene_file(path: Path) -> bool:
     return path.suffix.lower() == ".xml"
@@ -542,13 +628,21 @@ def _optimize_locked(args, src: Path, out: Path, cfg, saved) -> int:
         _check_resumed_dataset(src, out, saved, record.get("dataset_fingerprint"))
     verify_images(ds.test, progress=not args.quiet)
     trainer = Trainer(ds, cfg, out, progress=not args.quiet)     # (decodes the training images)
+    viewer = _training_viewer(args, trainer, ds, cfg) if args.view else None
     if args.overwrite:
         run_folder.clear_run(out)
     try:
-        metrics = trainer.run(resume=args.resume, record=record)
+        metrics = trainer.run(resume=args.resume, record=record,
+                              monitor=None if viewer is None else viewer.training_monitor)
     except TrainingDiverged as e:
+        if viewer is not None:
+            viewer.viewer.stop()
         print(f"mi-gs: error: {e}", file=sys.stderr)
         return 3
+    except BaseException:
+        if viewer is not None:
+            viewer.viewer.stop()
+        raise
     if ds.layout == "mitsuba":
         from .plugins.scene_xml import write_gaussian_scene
 
@@ -556,8 +650,30 @@ def _optimize_locked(args, src: Path, out: Path, cfg, saved) -> int:
         write_gaussian_scene(out / run_folder.GAUSSIAN_SCENE, run_folder.MODEL, cam, ds.color_space, ds.background,
                              antialiased=cfg.raster.antialiased)
     print(json.dumps({"output": str(out), **metrics["mean"], "gaussians": metrics["gaussians"],
-                      "training_seconds": metrics["training_seconds"]}, indent=2))
+                      "training_seconds": metrics["training_seconds"]}, indent=2), flush=True)
+    if viewer is not None:
+        print(f"mi-gs: training done; the viewer stays at {viewer.viewer.url} (Ctrl-C stops)", file=sys.stderr,
+              flush=True)
+        try:
+            viewer.viewer.serve_forever()
+        finally:
+            viewer.viewer.stop()
     return 0
+
+
+def _training_viewer(args, trainer, ds, cfg):
+    from .viewer import TrainingView, Viewer
+
+    live = TrainingView(trainer)
+    viewer = Viewer(live, _entries(ds), _viewer_config(args), raster=cfg.raster, color_space=ds.color_space,
+                    background=tuple(ds.background), title=f"mi-gs optimize {Path(args.output).name}")
+    live.viewer = viewer
+    try:
+        viewer.start()
+    except OSError as e:
+        raise InputError(f"--host {args.host} --port {args.port}: cannot serve there ({e.strerror or e})") from None
+    print(f"mi-gs: training view at {viewer.url}", file=sys.stderr, flush=True)
+    return live
 
 
 def _load_input(src: Path, cfg, out: Path, cache: str | None = None, progress: bool = True,
@@ -765,6 +881,9 @@ def _add_optimize(sub) -> None:
     s.add_argument("--overwrite", action="store_true",
                    help="start a new run in an output folder that holds one (cached references are kept)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.add_argument("--view", action="store_true",
+                   help="serve the viewer while training (mi-gs view's options below), with the loss curve")
+    _add_viewer_options(s)
     _add_scene_options(s)
     s.set_defaults(func=cmd_optimize)
 
@@ -788,6 +907,30 @@ def _add_export(sub) -> None:
                         "config.json sits beside the model was trained)")
     s.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     s.set_defaults(func=cmd_export)
+
+
+def _add_viewer_options(s) -> None:
+    from .viewer import ViewerConfig
+
+    v = ViewerConfig()
+    s.add_argument("--port", type=positive_int, default=v.port, help=f"viewer port (default {v.port})")
+    s.add_argument("--host", default=v.host, help=f"viewer address (default {v.host}; 0.0.0.0: every interface)")
+    s.add_argument("--max-size", type=positive_int, default=v.max_size,
+                   help=f"longest image side at rest (default {v.max_size})")
+    s.add_argument("--moving-size", type=positive_int, default=v.moving_size,
+                   help=f"longest image side while the camera moves (default {v.moving_size})")
+
+
+def _add_view(sub) -> None:
+    s = sub.add_parser("view", help="look at a model in the browser (viser): orbit, render modes, dataset cameras")
+    s.add_argument("input", help="model.ply|.splat|.spz, or an mi-gs optimize output folder")
+    s.add_argument("--camera", help="camera JSON to start from (default: the dataset's first camera)")
+    s.add_argument("--background", type=finite_float, nargs="+", default=None,
+                   help="background colour (1 or 3 values; default: the run's)")
+    s.add_argument("--antialiased", action=argparse.BooleanOptionalAction, default=None,
+                   help="render with Mip-Splatting's 2D filter (default: as the run was trained)")
+    _add_viewer_options(s)
+    s.set_defaults(func=cmd_view)
 
 
 def _add_convert(sub) -> None:
@@ -820,7 +963,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="mi-gs", description="3D Gaussian Splatting as a Mitsuba 3 plugin.")
     p.add_argument("--variant", default=None, help=_VARIANT_HELP)
     sub = p.add_subparsers(dest="command", required=True)
-    for add in (_add_info, _add_render, _add_optimize, _add_eval, _add_export, _add_convert):
+    for add in (_add_info, _add_render, _add_optimize, _add_eval, _add_export, _add_view, _add_convert):
         add(sub)
     for s in sub.choices.values():
         # (also after the subcommand; SUPPRESS: given there, it replaces the one before the subcommand)

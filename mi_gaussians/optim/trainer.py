@@ -393,9 +393,11 @@ class Trainer:
                                    color_space=self.ds.color_space)
         return summarize(scores)["psnr"]
 
-    def run(self, resume: bool = False, record: dict | None = None) -> dict:
+    def run(self, resume: bool = False, record: dict | None = None, monitor=None) -> dict:
         """Train to ``cfg.optim.iterations`` (from the checkpoint with ``resume``) and write the outputs; ``record``:
-        more entries for ``config.json`` (e.g. the dataset's fingerprint)."""
+        more entries for ``config.json`` (e.g. the dataset's fingerprint); ``monitor``: called with the trainer
+        after every iteration (e.g. a viewer; it may read the model, and must not change it), outside the
+        training time."""
         from tqdm import tqdm
 
         cfg = self.cfg
@@ -417,6 +419,8 @@ class Trainer:
                     self.advance()
                 else:
                     self._resolve()
+                if monitor is not None:
+                    monitor(self)
                 step = self.step
                 if self._pending or step <= done or not self._host_work_at(step):
                     continue
