@@ -476,6 +476,10 @@ def _train_config(args, scene_file: bool = False):
         opt_kw["position_lr_max_steps"] = args.iterations
     if args.sh_degree is not None:
         opt_kw["sh_degree"] = args.sh_degree
+    if args.depth_weight is not None:
+        if not scene_file:
+            raise InputError("--depth-weight needs the exact depth of a Mitsuba scene: give a scene .xml")
+        opt_kw["depth_weight"], opt_kw["depth_weight_final"] = args.depth_weight, args.depth_weight / 100.0
     optim = dataclasses.replace(o, **opt_kw)
     dens_kw = {}
     if args.iterations is not None and args.iterations < o.iterations:
@@ -506,6 +510,7 @@ _RUN_FIELDS = {
     "spp": ("scene.spp",), "linear": ("scene.linear",), "init": ("scene.init",),
     "init_points": ("scene.init_points",), "define": ("scene.defines",), "antialiased": ("raster.antialiased",),
     "absgrad": ("densify.absgrad",), "strategy": ("strategy",), "max_gaussians": ("mcmc.cap_max",),
+    "depth_weight": ("optim.depth_weight",),
 }
 
 
@@ -858,6 +863,9 @@ def _add_optimize(sub) -> None:
     s.add_argument("--absgrad", action="store_true",
                    help="densify on AbsGS's absolute per-pixel gradients (gsplat's absgrad), with its own threshold "
                         "(densify.absgrad_threshold, default 0.0008)")
+    s.add_argument("--depth-weight", type=positive_float, default=None,
+                   help="scene .xml: add an inverse-depth L1 against the exact depth Mitsuba gives, weighted W at the "
+                        "start and decaying to W/100 (the 2024 reference's schedule with W = 1)")
     s.add_argument("--strategy", choices=("default", "mcmc"), default=None,
                    help="densification: 'default' (the paper's clone / split / prune) or 'mcmc' (3DGS as Markov "
                         "Chain Monte Carlo, gsplat's MCMCStrategy: relocation, growth up to --max-gaussians)")

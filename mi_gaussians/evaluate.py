@@ -70,3 +70,24 @@ def scores_report(scores: list[ViewScore], lpips_note: str | None = None) -> dic
     if lpips_note:
         out["lpips_note"] = lpips_note
     return out
+
+
+def depth_error(g: Gaussians, views, cfg: RasterConfig = RasterConfig()) -> dict | None:
+    """Mean absolute error of the rendered expected depth against the views' exact depth (Mitsuba scenes), over the
+    pixels where the reference sees a surface and the render covers the pixel (alpha > 0.5), in scene units;
+    ``coverage``: the fraction of the reference's surface pixels that the render covers. None without depth."""
+    total, count, surface = 0.0, 0, 0
+    for v in views:
+        ref = v.load_depth()
+        if ref is None:
+            return None
+        out = render(g, v.camera, cfg=cfg)
+        d, a = np.array(out.depth, np.float64), np.array(out.alpha, np.float64)
+        hit = np.isfinite(ref) & (ref > 0)
+        ok = hit & (a > 0.5)
+        total += float(np.abs(d[ok] - ref[ok]).sum())
+        count += int(ok.sum())
+        surface += int(hit.sum())
+    if not surface:
+        return None
+    return {"depth_mae": total / count if count else None, "coverage": count / surface}

@@ -80,11 +80,17 @@ def test_masked_adam_step_is_no_step():
 
 
 def _train(scene, cfg, steps, capacity=None):  # noqa: F811
+    return _train_ds(load(scene, cfg), cfg, steps, capacity)
+
+
+def _train_ds(ds, cfg, steps, capacity=None):
+    """``steps`` iterations of a Trainer on the dataset ``ds`` (frozen steps resolved), optionally with a fixed
+    instance capacity after every traced iteration."""
     from mi_gaussians.optim.trainer import Trainer
 
     import tempfile
 
-    tr = Trainer(load(scene, cfg), cfg, tempfile.mkdtemp(), progress=False)
+    tr = Trainer(ds, cfg, tempfile.mkdtemp(), progress=False)
     if capacity is not None:
         def tiny(instances, n_before):
             tr.capacity, tr._peak = capacity, 0

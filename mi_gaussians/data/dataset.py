@@ -57,12 +57,23 @@ class View:
     camera: Camera
     image_path: Path
     loader: ImageLoader = field(repr=False, compare=False)
+    depth_path: Path | None = None       # Mitsuba scenes: the exact depth (see ``scene_references.py``)
 
     def load_image(self) -> np.ndarray:
         """The image as (H, W, 3) float32 (H, W = camera.height, camera.width), RGBA composited over the background.
 
         Values are those of the file (see ``Dataset.color_space``). Decoded on every call (nothing is cached)."""
         return self.loader.load(self.image_path)[0]
+
+    def load_depth(self) -> np.ndarray | None:
+        """The exact view-space depth, (H, W) float32, +inf where nothing is hit; None when the dataset has none."""
+        if self.depth_path is None:
+            return None
+        d = np.load(self.depth_path)
+        if d.shape != (self.camera.height, self.camera.width):
+            raise ValueError(f"{self.depth_path}: depth of shape {d.shape}, the view is "
+                             f"{self.camera.height}x{self.camera.width}")
+        return d.astype(np.float32)
 
     def load_alpha(self) -> np.ndarray:
         """The alpha channel as (H, W) float32 in [0, 1], resampled like the image; ones when the file has none."""

@@ -32,7 +32,7 @@ from .camera import Camera
 from .dataset import Dataset, View
 from .images import ImageLoader
 from .scene_file import load_scene
-from .scene_references import cache_key, render_references, write_rig_file
+from .scene_references import cache_key, depth_path, render_references, write_rig_file
 from .scene_rig import scene_views
 
 
@@ -65,7 +65,7 @@ def _composite_background(background, linear: bool) -> tuple[tuple, tuple]:
 
 def _reference_view(c: Camera, path: Path, bg_linear: tuple, linear: bool) -> View:
     loader = ImageLoader((c.width, c.height), (c.width, c.height), bg_linear)
-    return View(c.name, c, path, loader if linear else SrgbEncodedLoader(loader))
+    return View(c.name, c, path, loader if linear else SrgbEncodedLoader(loader), depth_path=depth_path(path))
 
 
 def load_scene_dataset(path: str | os.PathLike, cfg: SceneConfig = SceneConfig(), cache_root: str | os.PathLike = ".",

@@ -1,7 +1,9 @@
 """Path-traced references of a Mitsuba scene dataset, cached as EXR files.
 
 References are rendered with the scene's own integrator (``mi.render``; a box pixel filter and an RGBA film, so alpha
-marks coverage) and cached as linear RGBA EXR files in ``cache_root/<key>/<split>/<camera>.exr``, ``key``
+marks coverage) and cached as linear RGBA EXR files in ``cache_root/<key>/<split>/<camera>.exr``, with the exact depth beside each
+(``<camera>.depth.npy``: float32 (H, W), the view-space z of the first surface hit through each pixel's centre,
+found by Mitsuba's ray tracer -- what a depth AOV gives at the pixel centre -- and +inf where the ray hits nothing), ``key``
 (:func:`cache_key`) hashing the scene file, every file it references, its parameters, the cameras, the sample count
 and the Mitsuba version. Each file is written atomically as soon as it is rendered, so an interrupted run re-renders
 only what is missing, and a re-run renders nothing. ``rig.json`` beside them records the cameras.
@@ -19,7 +21,7 @@ from typing import Callable
 import numpy as np
 
 from ..imwrite import write_exr
-from ..io_utils import atomic_write_text
+from ..io_utils import atomic_path, atomic_write_text
 from .camera import Camera
 from .scene_file import parse_defines, referenced_files, scene_bbox
 from .scene_rig import SceneViews
@@ -96,9 +98,35 @@ def render_reference(scene, cam: Camera, spp: int, seed: int) -> np.ndarray:
     return img
 
 
+def reference_depth(scene, cam: Camera) -> np.ndarray:
+    """(H, W) float32: view-space z (OpenCV, along the camera axis) of the first surface each pixel centre's ray hits
+    (Mitsuba's ``Scene.ray_intersect``), +inf where it hits nothing."""
+    import drjit as dr
+    import mitsuba as mi
+
+    W, H = cam.width, cam.height
+    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    d_cam = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones_like(u)], axis=-1).reshape(-1, 3)
+    norm = np.linalg.norm(d_cam, axis=1)
+    R = cam.world_to_camera[:3, :3]
+    d_world = (d_cam / norm[:, None]) @ R           # R^T d for each row
+    o = cam.center
+    ray = mi.Ray3f(mi.Point3f(*[mi.Float(np.full(len(d_world), o[i], np.float32)) for i in range(3)]),
+                   mi.Vector3f(*[mi.Float(d_world[:, i].astype(np.float32)) for i in range(3)]))
+    with dr.suspend_grad():
+        si = scene.ray_intersect(ray)
+        t = np.array(dr.select(si.is_valid(), si.t, dr.inf), np.float64)
+    return (t / norm).reshape(H, W).astype(np.float32)
+
+
+def depth_path(exr: Path) -> Path:
+    """The depth file beside the reference ``exr``."""
+    return exr.with_name(exr.stem + ".depth.npy")
+
+
 def render_references(scene, views: SceneViews, cache_dir: Path, progress: bool = True,
                       log: Callable[[str], None] | None = None) -> dict[str, Path]:
-    """Render every camera that has no EXR in ``cache_dir`` yet; returns camera name -> EXR path."""
+    """Render every camera that has no EXR (or no depth) in ``cache_dir`` yet; returns camera name -> EXR path."""
     from tqdm import tqdm
 
     cams = [("train", i, c) for i, c in enumerate(views.train)] + [("test", i, c) for i, c in enumerate(views.test)]
@@ -111,4 +139,10 @@ def render_references(scene, views: SceneViews, cache_dir: Path, progress: bool 
     for split, i, c in tqdm(todo, desc="references", unit="view", disable=not progress or not todo):
         seed = i if split == "train" else _TEST_SEED_OFFSET + i
         write_exr(paths[c.name], render_reference(scene, c, views.spp, seed))
+    for split, i, c in cams:
+        target = depth_path(paths[c.name])
+        if not target.is_file():
+            with atomic_path(target, suffix=".npy") as tmp:
+                with open(tmp, "wb") as f:
+                    np.save(f, reference_depth(scene, c))
     return paths

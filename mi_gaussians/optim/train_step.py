@@ -34,7 +34,7 @@ from ..config import RasterConfig
 from ..raster.projection import ViewParams
 from ..raster.rasterize import render
 from .adam import GaussianAdam
-from .losses import photometric_loss
+from .losses import depth_loss, photometric_loss
 from .strategy import Strategy
 
 # Instance capacities are taken from this geometric ladder (steps of 2^(1/4), about 19 %), so that the capacity
@@ -64,6 +64,8 @@ class StepInputs:
     background: tuple                     # (r, g, b) 1-element mi.Float each
     means_lr: "mi.Float"                  # the position learning rate of this iteration (1 element)
     step: "mi.UInt32"                     # the iteration (1 element; keys the strategy's per-iteration noise)
+    depth_target: "mi.TensorXf | None" = None   # (H, W) inverse exact depth, 0 where no surface (depth loss)
+    depth_weight: "mi.Float | None" = None      # this iteration's depth-loss weight (1 element)
 
 
 def composite_target(target, transparency, background, fixed_background) -> "mi.TensorXf":
@@ -101,6 +103,8 @@ class TrainStep:
             reg = strategy.regularization(params)
             if reg is not None:
                 loss = loss + reg
+            if inputs.depth_target is not None:
+                loss = loss + inputs.depth_weight * depth_loss(out.depth, out.alpha, inputs.depth_target)
             dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
             ok = valid & out.fits & dr.isfinite(loss)
             if update_state:

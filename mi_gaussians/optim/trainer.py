@@ -34,7 +34,7 @@ import numpy as np
 from ..config import TrainConfig
 from ..data.dataset import Dataset
 from ..drjit_utils import owned_tensor
-from ..evaluate import evaluate_views, scores_report, summarize
+from ..evaluate import depth_error, evaluate_views, scores_report, summarize
 from ..io_utils import atomic_path
 from ..model.gaussians import Gaussians
 from ..raster.projection import ViewParams
@@ -44,7 +44,7 @@ from .adam import GaussianAdam
 from .densify import DefaultStrategy
 from .mcmc import MCMCStrategy
 from .strategy import Strategy
-from .losses import photometric_loss
+from .losses import depth_loss, inverse_depth_target, photometric_loss
 from .schedules import expon_lr, sh_degree_at
 from .train_step import StepInputs, TrainStep, capacity_for, composite_target
 
@@ -152,6 +152,13 @@ class Trainer:
         # background, RGBA targets are re-composited over the same random colour each iteration (the reference
         # keeps them composited over the fixed one), so we also keep the coverage (1 - alpha).
         self.targets = [owned_tensor(v.load_image()) for v in ds.train]
+        self.depth_targets = None
+        if cfg.optim.depth_weight > 0:
+            depths = [v.load_depth() for v in ds.train]
+            if any(d is None for d in depths):
+                raise ValueError(f"{ds.root}: depth supervision (--depth-weight) needs the exact depth of a Mitsuba "
+                                 "scene (.xml); this dataset has none")
+            self.depth_targets = [owned_tensor(inverse_depth_target(d)) for d in depths]
         self.transparency = None
         if cfg.optim.random_background:
             self.transparency = [owned_tensor(1.0 - v.load_alpha()[..., None]) for v in ds.train]
@@ -238,6 +245,10 @@ class Trainer:
         return self.extent * expon_lr(step, o.position_lr_init, o.position_lr_final, o.position_lr_max_steps,
                                       delay_steps=o.position_lr_delay_steps, delay_mult=o.position_lr_delay_mult)
 
+    def _depth_weight(self, step: int) -> float:
+        o = self.cfg.optim
+        return expon_lr(step, o.depth_weight, o.depth_weight_final, o.iterations)
+
     def _draw(self) -> tuple[int, tuple]:
         """The training view and the background colour of the next iteration (advances both random streams)."""
         idx = self.sampler.next()
@@ -261,6 +272,9 @@ class Trainer:
         reg = self.strategy.regularization(self.params)
         if reg is not None:
             loss = loss + reg
+        if self.depth_targets is not None:
+            loss = loss + dr.opaque(mi.Float, self._depth_weight(step)) * depth_loss(out.depth, out.alpha,
+                                                                                    self.depth_targets[idx])
         # (a view where nothing is visible gives a loss that does not depend on the parameters)
         dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
         value = float(loss[0])
@@ -304,7 +318,10 @@ class Trainer:
         inputs = StepInputs(target=self.targets[idx],
                             transparency=None if self.transparency is None else self.transparency[idx],
                             view=self._view_params(idx), background=tuple(dr.opaque(mi.Float, b) for b in bg),
-                            means_lr=dr.opaque(mi.Float, self._means_lr(step)), step=dr.opaque(mi.UInt32, step))
+                            means_lr=dr.opaque(mi.Float, self._means_lr(step)), step=dr.opaque(mi.UInt32, step),
+                            depth_target=None if self.depth_targets is None else self.depth_targets[idx],
+                            depth_weight=None if self.depth_targets is None
+                            else dr.opaque(mi.Float, self._depth_weight(step)))
         degree = sh_degree_at(step, self.params.gaussians.sh_degree, cfg.optim.sh_increase_interval)
         if self._valid is None:
             self._valid = dr.opaque(mi.Bool, True)
@@ -455,6 +472,9 @@ class Trainer:
             "training_seconds": round(self.elapsed, 3),
             "iterations_per_second": round(self.step / self.elapsed, 3) if self.elapsed > 0 else None,
         }
+        depth = depth_error(g, views, cfg=self.cfg.raster)
+        if depth is not None:
+            metrics["depth_mae"], metrics["depth_coverage"] = depth["depth_mae"], round(depth["coverage"], 6)
         report.write_json(self.out / "metrics.json", metrics)
         report.write_json(self.out / "history.json", self.history.to_dict())
         report.plot_curves(self.out / "curves.png", self.history.to_dict())
