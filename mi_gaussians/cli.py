@@ -696,7 +696,8 @@ def _load_input(src: Path, cfg, out: Path, cache: str | None = None, progress: b
     from .data.dataset import load_dataset
 
     return load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
-                        random_points=d.random_points, seed=d.seed, masks=d.masks)
+                        random_points=d.random_points, seed=d.seed, masks=d.masks,
+                        random_init=d.random_init)
 
 
 # ------------------------------------------------------------------------------------------------------ eval

@@ -15,6 +15,8 @@ class DataConfig:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # RGBA images are composited over this colour
     test_every: int = 8                      # COLMAP / single-transforms layouts: index % test_every == 0 is test (0: no test split)
     random_points: int = 100_000             # initial points for layouts without SfM points
+    random_init: str = "cube"                # ... sampled in the reference's cube, or 'frustum': where the training
+                                             # cameras look (data/pointcloud.py)
     masks: bool = True                       # COLMAP layout: composite each image over the background through its
                                              # mask in masks/ (white = object) when that folder exists
     seed: int = 0

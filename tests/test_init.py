@@ -114,3 +114,49 @@ def test_invalid_input(kwargs, match):
     with pytest.raises(ValueError, match=match):
         init_from_points(**kwargs)
 
+
+
+def test_frustum_sampler_samples_where_the_cameras_look():
+    """points_in_view: every point is in front of and inside at least one camera; a ring of inward-looking cameras
+    gets its points where the views overlap (near the centre), not spread through each whole frustum; seeded."""
+    from mi_gaussians.data.camera import Camera
+    from mi_gaussians.data.pointcloud import camera_extent, points_in_view
+
+    cams = []
+    for a in np.linspace(0, 2 * np.pi, 12, endpoint=False):
+        c = np.array([4 * np.cos(a), 0.5 * np.sin(3 * a), 4 * np.sin(a)])
+        fwd = -c / np.linalg.norm(c)
+        right = np.cross(fwd, [0.0, 1.0, 0.0])
+        right /= np.linalg.norm(right)
+        down = np.cross(fwd, right)
+        R = np.stack([right, down, fwd])
+        w2c = np.eye(4)
+        w2c[:3, :3], w2c[:3, 3] = R, -R @ c
+        cams.append(Camera(width=64, height=48, fx=60.0, fy=60.0, cx=32.0, cy=24.0, world_to_camera=w2c))
+    xyz, rgb = points_in_view(4000, cams, seed=1)
+    assert xyz.shape == (4000, 3) and rgb.shape == (4000, 3) and np.all((rgb >= 0) & (rgb < 1))
+    seen = np.zeros(len(xyz), int)
+    for c in cams:
+        uv, z = c.project(xyz.astype(np.float64))
+        seen += (z > 0.2) & (uv[:, 0] >= 0) & (uv[:, 0] < 64) & (uv[:, 1] >= 0) & (uv[:, 1] < 48)
+    assert np.all(seen >= 1)
+    # concentrated where the cameras overlap: far more points near the centre than uniform candidates have
+    mean, extent = camera_extent(np.stack([c.center for c in cams]))
+    r = np.linalg.norm(xyz - mean, axis=1)
+    uniform, _ = points_in_view(4000, cams[:1], seed=1)           # one camera: no overlap to favour
+    assert np.median(r) < 0.7 * np.median(np.linalg.norm(uniform - mean, axis=1))
+    assert np.mean(seen) > 3
+    np.testing.assert_array_equal(points_in_view(4000, cams, seed=1)[0], xyz)
+
+
+def test_random_init_setting(tmp_path):
+    import mi_gaussians as mig
+    from synthetic_dataset import make_blender_dataset
+
+    scene = make_blender_dataset(tmp_path / "scene")
+    cube = mig.load_dataset(scene, random_points=3000)
+    frustum = mig.load_dataset(scene, random_points=3000, random_init="frustum")
+    assert np.abs(cube.points_xyz).max() <= 1.3 and len(frustum.points_xyz) == 3000
+    assert not np.array_equal(cube.points_xyz, frustum.points_xyz)
+    with pytest.raises(ValueError, match="random_init"):
+        mig.load_dataset(scene, random_init="sphere")

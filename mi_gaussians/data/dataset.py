@@ -240,7 +240,8 @@ def _mask_file(masks_dir: Path, image: Path, name: str, file_size: tuple[int, in
     return mask
 
 
-def _load_colmap(root: Path, builder: _Builder, test_every: int, n_points: int, seed: int, masks: bool):
+def _load_colmap(root: Path, builder: _Builder, test_every: int, n_points: int, seed: int, masks: bool,
+                 random_init: str):
     model_dir = _colmap.find_model_dir(root)
     model = _colmap.read_model(model_dir)
     images_dir = root / "images"
@@ -273,7 +274,8 @@ def _load_colmap(root: Path, builder: _Builder, test_every: int, n_points: int, 
         return train, test, model.points_xyz, model.points_rgb
     log.warning("%s: the model has no 3D points; using %d random points around the cameras", model.file("points3D"),
                 n_points)
-    return (train, test) + _points_around(train, n_points, seed)
+    return (train, test) + _random_points(train, n_points, seed, random_init,
+                                          lambda: _points_around(train, n_points, seed))
 
 
 def _points_around(train: list[View], n_points: int, seed: int):
@@ -313,7 +315,16 @@ def _frame_views(path: Path, builder: _Builder, skip_missing: bool) -> list[View
     return views
 
 
-def _load_blender(root: Path, builder: _Builder, test_every: int, n_points: int, seed: int):
+def _random_points(train: list[View], n_points: int, seed: int, random_init: str, cube):
+    """Initial points for a layout without SfM points: ``cube()`` (the reference's), or the frustum sampler."""
+    if n_points <= 0 or not train:
+        return None, None
+    if random_init == "frustum":
+        return _pc.points_in_view(n_points, [v.camera for v in train], seed)
+    return cube()
+
+
+def _load_blender(root: Path, builder: _Builder, test_every: int, n_points: int, seed: int, random_init: str):
     train = _frame_views(root / "transforms_train.json", builder, skip_missing=False)   # file order, as the reference
     test_file = root / "transforms_test.json"
     if not test_file.is_file():
@@ -322,41 +333,46 @@ def _load_blender(root: Path, builder: _Builder, test_every: int, n_points: int,
     test = _frame_views(test_file, builder, skip_missing=False)
     if test_every == 0:
         train, test = train + test, []
-    xyz, rgb = _pc.blender_random_points(n_points, seed) if n_points > 0 else (None, None)
+    xyz, rgb = _random_points(train, n_points, seed, random_init, lambda: _pc.blender_random_points(n_points, seed))
     return train, test, xyz, rgb
 
 
-def _load_ngp(root: Path, builder: _Builder, test_every: int, n_points: int, seed: int):
+def _load_ngp(root: Path, builder: _Builder, test_every: int, n_points: int, seed: int, random_init: str):
     views = _frame_views(root / "transforms.json", builder, skip_missing=True)
     train, test = _split_by_index(views, test_every)
-    return (train, test) + _points_around(train, n_points, seed)
+    return (train, test) + _random_points(train, n_points, seed, random_init,
+                                          lambda: _points_around(train, n_points, seed))
 
 
 # ---------------------------------------------------------------------------------------------------- entry point
 def load_dataset(path: str | os.PathLike, resolution: int = _DEFAULTS.resolution,
                  background=_DEFAULTS.background, test_every: int = _DEFAULTS.test_every,
                  random_points: int = _DEFAULTS.random_points, seed: int = _DEFAULTS.seed,
-                 masks: bool = _DEFAULTS.masks) -> Dataset:
+                 masks: bool = _DEFAULTS.masks, random_init: str = _DEFAULTS.random_init) -> Dataset:
     """Load and validate a scene folder (layout detected, see the module docstring). Lazy: no pixels are decoded.
 
     resolution: divide the image size by this (``round(W / r) x round(H / r)``); background: (3,) colour that RGBA
     images are composited over; test_every: hold-out period for COLMAP/ngp (0: all train; Blender: 0 merges test into
     train); random_points / seed: initial points for layouts without SfM points (0: none); masks: use a COLMAP
-    scene's masks/ folder when there is one.
+    scene's masks/ folder when there is one; random_init: 'cube' (the reference's) or 'frustum' (see pointcloud.py).
     Defaults are those of :class:`mi_gaussians.config.DataConfig`.
     """
     bg = _check_options(resolution, background, test_every, random_points, seed)
+    if random_init not in _pc.RANDOM_INITS:
+        raise ValueError(f"data.random_init must be one of {', '.join(_pc.RANDOM_INITS)}, got {random_init!r}")
     if not isinstance(masks, (bool, np.bool_)):
         raise ValueError(f"masks must be True or False, got {masks!r}")
     root = Path(path)
     layout = detect_layout(root)
     builder = _Builder(int(resolution), bg)
     if layout == "colmap":
-        train, test, xyz, rgb = _load_colmap(root, builder, int(test_every), int(random_points), int(seed), bool(masks))
+        train, test, xyz, rgb = _load_colmap(root, builder, int(test_every), int(random_points), int(seed), bool(masks),
+                                             random_init)
     elif layout == "blender":
-        train, test, xyz, rgb = _load_blender(root, builder, int(test_every), int(random_points), int(seed))
+        train, test, xyz, rgb = _load_blender(root, builder, int(test_every), int(random_points), int(seed),
+                                              random_init)
     else:
-        train, test, xyz, rgb = _load_ngp(root, builder, int(test_every), int(random_points), int(seed))
+        train, test, xyz, rgb = _load_ngp(root, builder, int(test_every), int(random_points), int(seed), random_init)
     if not train:
         raise ValueError(f"{root}: no training views (test_every={test_every} leaves none)")
     spaces = {color_space_of(v.image_path) for v in train + test}

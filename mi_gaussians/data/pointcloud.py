@@ -7,6 +7,11 @@ ours are uniform in ``[0, 1)^3`` (the optimizer rewrites them within a few hundr
 For instant-ngp captures (no points, arbitrary world frame) the cube is centred on the *focus point* of the cameras,
 the point nearest all optical axes in the least-squares sense, with a half-size equal to the median distance from the
 camera centres to that point: the cube then reaches back to the cameras and holds everything they look at.
+
+``random_init = "frustum"`` (:func:`points_in_view`) samples where the training cameras look instead of a fixed cube:
+candidates along each camera's pixel rays, uniform in depth between the near plane and the far side of the camera
+rig (or twice the distance to the point the cameras look at), kept with probability proportional to the square of the number of training cameras that see them -- the
+region the cameras share, whatever the scene's size (a room seen from inside as well as an object seen from around it).
 """
 
 from __future__ import annotations
@@ -86,3 +91,54 @@ def blender_random_points(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     h = BLENDER_BOX_HALF_SIZE
     return random_points_in_box(n, (-h, -h, -h), (h, h, h), seed)
 
+
+
+#: Initial point samplers of layouts without SfM points (``DataConfig.random_init``): the reference's cube (Blender:
+#: [-1.3, 1.3]^3; others: around the focus point) or the cameras' frustums (:func:`points_in_view`).
+RANDOM_INITS = ("cube", "frustum")
+#: Near plane of the frustum sampler (the rasterizer's default near plane).
+FRUSTUM_NEAR = 0.2
+
+
+def points_in_view(n: int, cameras, seed: int, near: float = FRUSTUM_NEAR,
+                   oversample: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` random points where the cameras look, with uniform random colours (see the module docstring).
+
+    ``oversample * n`` candidates: a camera drawn uniformly, a pixel position uniform in its image, a depth z
+    uniform in [near, far] (uniform per ray: denser near the camera than uniform in volume, which on our rigs puts
+    more points inside the scene: measured on mi_objects and mi_room), far = the larger of the camera's
+    distance to the rig's centre plus the rig's extent (:func:`camera_extent`) and twice its distance to the
+    :func:`focus_point` (forward-facing rigs, whose extent is small); ``n`` of them are drawn without replacement
+    with probability proportional to the square of the number of cameras that see them (in front of their near
+    plane, inside their image). Returns (xyz (n, 3) float32, rgb (n, 3) float32)."""
+    cams = list(cameras)
+    if n < 0 or not cams:
+        raise ValueError(f"points_in_view: need n >= 0 and at least one camera (n={n}, {len(cams)} cameras)")
+    rng = np.random.default_rng(seed)
+    centers = np.stack([c.center for c in cams])
+    mean, extent = camera_extent(centers)
+    focus = focus_point(centers, np.stack([c.world_to_camera[2, :3] for c in cams]))
+    far = np.maximum.reduce([np.linalg.norm(centers - mean, axis=1) + extent,
+                             2.0 * np.linalg.norm(centers - focus, axis=1), np.full(len(cams), 2.0 * near)])
+    m = max(int(oversample), 1) * n
+    which = rng.integers(len(cams), size=m)
+    xyz = np.zeros((m, 3))
+    u3 = rng.random((m, 3))
+    for i, c in enumerate(cams):
+        sel = np.flatnonzero(which == i)
+        if not len(sel):
+            continue
+        u, v, r = u3[sel, 0] * c.width, u3[sel, 1] * c.height, u3[sel, 2]
+        z = near + r * (far[i] - near)
+        p_cam = np.stack([(u - c.cx) / c.fx * z, (v - c.cy) / c.fy * z, z], axis=1)
+        R, t = c.world_to_camera[:3, :3], c.world_to_camera[:3, 3]
+        xyz[sel] = (p_cam - t) @ R                       # R^T (p - t) per row
+    seen = np.zeros(m)
+    for c in cams:
+        uv, z = c.project(xyz)
+        with np.errstate(invalid="ignore"):
+            seen += (z > near) & (uv[:, 0] >= 0) & (uv[:, 0] < c.width) & (uv[:, 1] >= 0) & (uv[:, 1] < c.height)
+    weight = np.maximum(seen, 1.0) ** 2                  # (each candidate is in its own camera's frustum)
+    keep = rng.choice(m, size=n, replace=False, p=weight / weight.sum()) if n else np.zeros(0, np.int64)
+    rgb = rng.random((n, 3))
+    return xyz[keep].astype(np.float32), rgb.astype(np.float32)
