@@ -9,7 +9,7 @@ The layers, bottom to top (a module may import from its own layer or a lower one
     3    raster        mi_gaussians.raster.*
     4    plugins       plugins/ (installed as mi_gaussians.plugins)
     5    training      evaluate, report, mi_gaussians.optim.*
-    6    front ends    cli, run_folder, and the package itself (mi_gaussians/__init__.py, the public face)
+    6    front ends    cli, run_folder, viewer, and the package itself (mi_gaussians/__init__.py, the public face)
 
 Every import is collected with ``ast``, those inside functions and ``if TYPE_CHECKING`` blocks included, absolute
 (``mi_gaussians.x``) and relative (``from ..x import y``, ``from . import x``). A module missing from the table fails
@@ -50,6 +50,7 @@ LAYERS: dict[str, float] = {
     # 6: front ends and the package's public face
     "mi_gaussians.cli": 6,
     "mi_gaussians.run_folder": 6,
+    "mi_gaussians.viewer": 6,
     "mi_gaussians": 6,
 }
 
