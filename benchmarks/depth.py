@@ -13,27 +13,12 @@ Each model is trained with the command line (``mi-gs optimize``); a finished run
 from __future__ import annotations
 
 import argparse
-import json
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def train(scene: Path, out: Path, iterations: int, cache: Path, extra: list[str]) -> dict:
-    if (out / "metrics.json").is_file() and (out / "point_cloud.ply").is_file():
-        print(f"{out}: trained already, reused", file=sys.stderr)
-        return json.loads((out / "metrics.json").read_text())
-    cmd = [str(Path(sys.executable).parent / "mi-gs"), "optimize", str(scene), "-o", str(out), "--iterations",
-           str(iterations), "--eval-every", "0", "--quiet", "--cache", str(cache), *extra]
-    if (out / "checkpoints" / "ckpt.npz").is_file():
-        cmd.append("--resume")
-    t0 = time.time()
-    subprocess.run(cmd, check=True)
-    print(f"{out}: trained in {time.time() - t0:.0f} s", file=sys.stderr)
-    return json.loads((out / "metrics.json").read_text())
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from cli_run import train  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -48,7 +33,8 @@ def main(argv=None) -> int:
         scene = ROOT / "scenes" / f"{name}.xml"
         root = Path(args.out) / name
         for label, extra in (("default", []), (f"--depth-weight {args.weight}", ["--depth-weight", args.weight])):
-            m = train(scene, root / ("depth" if extra else "default"), args.iterations, root / "references", extra)
+            m = train(scene, root / ("depth" if extra else "default"), args.iterations,
+                      ["--cache", str(root / "references"), *extra])
             rows.append((name, label, m["mean"]["psnr"], m["mean"]["ssim"], m.get("depth_mae"),
                          m.get("depth_coverage"), m["gaussians"], m["training_seconds"] / 60))
     print(f"\n{args.iterations} iterations; held-out views\n")

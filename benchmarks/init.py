@@ -19,14 +19,14 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from cli_run import train  # noqa: E402
 DATA = (ROOT / ".." / "shared" / "data").resolve()
 
 
@@ -57,20 +57,6 @@ def room_blender(out: Path, cache: Path) -> Path:
         fov = 2 * math.atan(views[0].camera.width / (2 * views[0].camera.fx))
         (out / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": fov, "frames": frames}, indent=1))
     return out
-
-
-def train(src: Path, out: Path, iterations: int, extra: list[str]) -> dict:
-    if (out / "metrics.json").is_file() and (out / "point_cloud.ply").is_file():
-        print(f"{out}: trained already, reused", file=sys.stderr)
-        return json.loads((out / "metrics.json").read_text())
-    cmd = [str(Path(sys.executable).parent / "mi-gs"), "optimize", str(src), "-o", str(out), "--iterations",
-           str(iterations), "--eval-every", "0", "--quiet", *extra]
-    if (out / "checkpoints" / "ckpt.npz").is_file():
-        cmd.append("--resume")
-    t0 = time.time()
-    subprocess.run(cmd, check=True)
-    print(f"{out}: trained in {time.time() - t0:.0f} s", file=sys.stderr)
-    return json.loads((out / "metrics.json").read_text())
 
 
 def main(argv=None) -> int:

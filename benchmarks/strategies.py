@@ -13,13 +13,12 @@ folder (default /tmp/mi_gs_strategies/<dataset>/<setup>) is reused, an interrupt
 from __future__ import annotations
 
 import argparse
-import json
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from cli_run import train  # noqa: E402
 DATA = (ROOT / ".." / "shared" / "data").resolve()
 ITERATIONS = 7000
 
@@ -32,20 +31,6 @@ DATASETS = {
 SETUPS = ("default", "absgrad", "mcmc_full", "mcmc_half")
 
 
-def train(src: Path, out: Path, options: list[str]) -> dict:
-    if (out / "metrics.json").is_file() and (out / "point_cloud.ply").is_file():
-        print(f"{out}: trained already, reused", file=sys.stderr)
-        return json.loads((out / "metrics.json").read_text())
-    cmd = [str(Path(sys.executable).parent / "mi-gs"), "optimize", str(src), "-o", str(out), "--iterations",
-           str(ITERATIONS), "--eval-every", "0", "--quiet", *options]
-    if (out / "checkpoints" / "ckpt.npz").is_file():
-        cmd.append("--resume")
-    t0 = time.time()
-    subprocess.run(cmd, check=True)
-    print(f"{out}: trained in {time.time() - t0:.0f} s", file=sys.stderr)
-    return json.loads((out / "metrics.json").read_text())
-
-
 def run_dataset(name: str, out_root: Path, only: set[str]) -> list[tuple]:
     folder, extra = DATASETS[name]
     src = DATA / folder
@@ -53,7 +38,7 @@ def run_dataset(name: str, out_root: Path, only: set[str]) -> list[tuple]:
         print(f"{name}: {src} not found, skipped", file=sys.stderr)
         return []
     rows = []
-    default = train(src, out_root / name / "default", extra)
+    default = train(src, out_root / name / "default", ITERATIONS, extra)
     cap = int(default["gaussians"])
     options = {"default": [], "absgrad": ["--absgrad"],
                "mcmc_full": ["--strategy", "mcmc", "--max-gaussians", str(cap)],
@@ -61,7 +46,7 @@ def run_dataset(name: str, out_root: Path, only: set[str]) -> list[tuple]:
     for setup in SETUPS:
         if setup not in only:
             continue
-        m = default if setup == "default" else train(src, out_root / name / setup, extra + options[setup])
+        m = default if setup == "default" else train(src, out_root / name / setup, ITERATIONS, extra + options[setup])
         rows.append((name, setup, " ".join(options[setup]) or "(default)", m["mean"]["psnr"], m["mean"]["ssim"],
                      m["gaussians"], m["training_seconds"] / 60))
     return rows
