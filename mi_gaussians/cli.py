@@ -418,6 +418,8 @@ def cmd_view(args) -> int:
     print(f"mi-gs view: {g.n:,} Gaussians at {viewer.url} (Ctrl-C stops)", flush=True)
     try:
         viewer.serve_forever()
+    except KeyboardInterrupt:                     # (how a viewer is meant to end: not an error)
+        pass
     finally:
         viewer.stop()
     return 0
@@ -585,12 +587,27 @@ def _optimize_config(args, src: Path, out: Path):
         cfg = cfg.with_settings(args.settings or ())
         if args.max_gaussians is not None and cfg.strategy != "mcmc":
             raise InputError("--max-gaussians is the budget of --strategy mcmc (the default strategy has none)")
+        _check_settings(cfg, _is_scene_file(src))
         from .optim.trainer import make_strategy
 
         make_strategy(cfg, 1.0, white_background=False)        # (refuses an unknown strategy or bad settings)
         return cfg, None
     except ValueError as e:
         raise InputError(str(e)) from None
+
+
+def _check_settings(cfg, scene_file: bool) -> None:
+    """Settings that ``--set`` can give and that would otherwise fail only once the run has started."""
+    from .data.pointcloud import RANDOM_INITS
+
+    if cfg.data.random_init not in RANDOM_INITS:
+        raise InputError(f"setting 'data.random_init': {cfg.data.random_init!r} is not one of "
+                         f"{', '.join(RANDOM_INITS)}")
+    if cfg.optim.depth_weight > 0 and not scene_file:
+        raise InputError("optim.depth_weight needs the exact depth of a Mitsuba scene: give a scene .xml")
+    if cfg.optim.depth_weight > 0 and not cfg.optim.depth_weight_final > 0:
+        raise InputError("optim.depth_weight_final must be > 0 with optim.depth_weight (the weight decays "
+                         "exponentially to it; --depth-weight W sets W and W/100)")
 
 
 def cmd_optimize(args) -> int:
@@ -634,35 +651,39 @@ def _optimize_locked(args, src: Path, out: Path, cfg, saved) -> int:
     verify_images(ds.test, progress=not args.quiet)
     trainer = Trainer(ds, cfg, out, progress=not args.quiet)     # (decodes the training images)
     viewer = _training_viewer(args, trainer, ds, cfg) if args.view else None
-    if args.overwrite:
-        run_folder.clear_run(out)
     try:
+        if args.overwrite:
+            run_folder.clear_run(out)
         metrics = trainer.run(resume=args.resume, record=record,
                               monitor=None if viewer is None else viewer.training_monitor)
+        if ds.layout == "mitsuba":
+            from .plugins.scene_xml import write_gaussian_scene
+
+            cam = (ds.test or ds.train)[0].camera
+            write_gaussian_scene(out / run_folder.GAUSSIAN_SCENE, run_folder.MODEL, cam, ds.color_space,
+                                 ds.background, antialiased=cfg.raster.antialiased)
     except TrainingDiverged as e:
         if viewer is not None:
-            viewer.viewer.stop()
+            viewer.close()
         print(f"mi-gs: error: {e}", file=sys.stderr)
         return 3
     except BaseException:
         if viewer is not None:
-            viewer.viewer.stop()
+            viewer.close()
         raise
-    if ds.layout == "mitsuba":
-        from .plugins.scene_xml import write_gaussian_scene
-
-        cam = (ds.test or ds.train)[0].camera
-        write_gaussian_scene(out / run_folder.GAUSSIAN_SCENE, run_folder.MODEL, cam, ds.color_space, ds.background,
-                             antialiased=cfg.raster.antialiased)
     print(json.dumps({"output": str(out), **metrics["mean"], "gaussians": metrics["gaussians"],
                       "training_seconds": metrics["training_seconds"]}, indent=2), flush=True)
+    if viewer is not None and viewer.viewer is None:
+        return 0
     if viewer is not None:
         print(f"mi-gs: training done; the viewer stays at {viewer.viewer.url} (Ctrl-C stops)", file=sys.stderr,
               flush=True)
         try:
             viewer.viewer.serve_forever()
+        except KeyboardInterrupt:                 # (the run is done: stopping the viewer is not an error)
+            pass
         finally:
-            viewer.viewer.stop()
+            viewer.close()
     return 0
 
 

@@ -80,6 +80,12 @@ class TrainingView:
         self._version, self._at, self._curves_at = 0, -math.inf, -math.inf
         self.seconds = 0.0        # time spent in the monitor (the viewer's cost to training)
 
+    def close(self) -> None:
+        """Stop the viewer (if it still runs)."""
+        if self.viewer is not None:
+            self.viewer.stop()
+            self.viewer = None
+
     def get(self):
         now = time.perf_counter()
         if now - self._at >= self.refresh_seconds:
@@ -89,10 +95,17 @@ class TrainingView:
     def training_monitor(self, trainer) -> None:
         start = time.perf_counter()
         if self.viewer is not None and self.viewer.has_clients():
-            self.viewer.poll(self.budget_seconds)
-            if start - self._curves_at >= self.curve_seconds:
-                self._curves_at = start
-                self.viewer.show_history(trainer.history.to_dict())
+            try:
+                self.viewer.poll(self.budget_seconds)
+                if start - self._curves_at >= self.curve_seconds:
+                    self._curves_at = start
+                    self.viewer.show_history(trainer.history.to_dict())
+            except Exception as e:          # the viewer must never cost the run: stop serving, train on
+                import sys
+
+                print(f"mi-gs: warning: the viewer failed ({type(e).__name__}: {e}); training goes on without it",
+                      file=sys.stderr)
+                self.close()
         self.seconds += time.perf_counter() - start
 
 
@@ -236,8 +249,20 @@ class Viewer:
 
     # ------------------------------------------------------------------ server
     def start(self) -> None:
+        """Serve (OSError when ``host:port`` cannot be bound: viser itself would try the next ports, or wait
+        forever for an address it cannot bind)."""
+        import socket
+
         import viser
 
+        try:
+            infos = socket.getaddrinfo(self.cfg.host, self.cfg.port, type=socket.SOCK_STREAM)
+        except socket.gaierror as e:
+            raise OSError(f"unknown host {self.cfg.host!r} ({e})") from None
+        family, _, _, _, address = infos[0]
+        with socket.socket(family, socket.SOCK_STREAM) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            probe.bind(address)
         self.server = viser.ViserServer(host=self.cfg.host, port=self.cfg.port, label=self.title, verbose=False)
         self.server.gui.configure_theme(control_layout="floating", show_logo=False, dark_mode=True)
         if self.initial is not None:

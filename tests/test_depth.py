@@ -130,3 +130,9 @@ def test_cli_depth_weight_needs_a_scene_file(tmp_path):
     r = subprocess.run([sys.executable, "-m", "mi_gaussians.cli", "optimize", str(scene), "-o", str(tmp_path / "o"),
                         "--depth-weight", "1"], capture_output=True, text=True)
     assert r.returncode == 2 and "scene .xml" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    for settings, words in ((["--set", "optim.depth_weight=1"], "scene .xml"),
+                            (["--set", "data.random_init=sphere"], "data.random_init")):
+        r = subprocess.run([sys.executable, "-m", "mi_gaussians.cli", "optimize", str(scene), "-o",
+                            str(tmp_path / "o"), *settings], capture_output=True, text=True)
+        assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert not (tmp_path / "o").exists()

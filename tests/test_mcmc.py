@@ -261,12 +261,15 @@ def _mi_gs(*args, cwd=None):
 def test_cli_mcmc_run_and_misuse(scene, tmp_path):  # noqa: F811
     out = tmp_path / "run"
     r = _mi_gs("optimize", scene, "-o", out, "--iterations", "120", "--strategy", "mcmc", "--max-gaussians", "2000",
-               "--random-points", "5000", "--eval-every", "0", "--quiet")
+               "--random-points", "1500", "--eval-every", "0", "--quiet", "--set", "mcmc.refine_start_iter=10",
+               "--set", "mcmc.refine_every=20")
     assert r.returncode == 0, r.stderr
     saved = json.loads((out / "config.json").read_text())["train"]
     assert saved["strategy"] == "mcmc" and saved["mcmc"]["cap_max"] == 2000
     assert saved["mcmc"]["refine_stop_iter"] == 100                   # 120 * 5 / 6: the paper's proportion
-    assert json.loads((out / "metrics.json").read_text())["gaussians"] <= 2000
+    # refinements at 20, 40, 60, 80: 1500 -> 1575 -> 1653 -> 1735 -> 1821
+    history = json.loads((out / "history.json").read_text())
+    assert max(history["gaussians"]) == 1821 and json.loads((out / "metrics.json").read_text())["gaussians"] == 1821
     r = _mi_gs("optimize", scene, "-o", out, "--iterations", "150", "--resume", "--max-gaussians", "3000", "--quiet")
     assert r.returncode == 2 and "mcmc.cap_max" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     r = _mi_gs("optimize", scene, "-o", out, "--iterations", "150", "--resume", "--quiet")

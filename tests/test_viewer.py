@@ -131,6 +131,10 @@ def test_browser_shows_the_model_and_follows_the_mouse(tmp_path):
     port = _free_port()
     proc = subprocess.Popen([sys.executable, "-m", "mi_gaussians.cli", "view", str(TINY), "--camera", str(CAMERA),
                              "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    import threading
+
+    watchdog = threading.Timer(120, proc.kill)         # (a hung viewer must not hang the suite)
+    watchdog.start()
     try:
         url = None
         for line in proc.stdout:
@@ -150,7 +154,7 @@ def test_browser_shows_the_model_and_follows_the_mouse(tmp_path):
         ref = np.asarray(Image.open(tmp_path / "ref.png").convert("RGB"), np.float64) / 255.0
         with sync_playwright() as p:
             browser, page = _open(p, chromium, url, W, H)
-            _wait_for_rest(page)
+            first = _wait_for_rest(page)
             page.wait_for_timeout(500)
             shot = _screenshot(page, tmp_path / "shot.png")
             region = (slice(H // 3, H), slice(0, W // 2))          # below the notification, left of the panel
@@ -162,14 +166,19 @@ def test_browser_shows_the_model_and_follows_the_mouse(tmp_path):
             page.mouse.down()
             page.mouse.move(W * 0.6, H * 0.65, steps=12)
             page.mouse.up()
+            # (the panel reports the frame after the drag: a moving one first, then one at rest)
+            t0 = time.time()
+            while "(moving)" not in page.inner_text("body"):
+                assert time.time() - t0 < 60, "no frame while the camera moved"
+                page.wait_for_timeout(100)
+            _wait_for_rest(page, after=None)
             page.wait_for_timeout(1000)
-            _wait_for_rest(page)
-            page.wait_for_timeout(1500)
             moved = _screenshot(page, tmp_path / "moved.png")
             assert np.mean(np.abs(moved[region] - a)) > 0.02
             assert (moved[region].max(axis=2) > 0.1).mean() > 0.1
             browser.close()
     finally:
+        watchdog.cancel()
         proc.terminate()
         proc.wait(timeout=30)
 
@@ -221,6 +230,15 @@ def test_training_with_a_browser_watching_trains_the_same_model(tmp_path):
 
 def test_view_misuse_gives_one_line(tmp_path):
     (tmp_path / "model.obj").write_text("x")
+    busy = socket.socket()
+    busy.bind(("127.0.0.1", 0))
+    busy.listen()
+    try:
+        r = subprocess.run([sys.executable, "-m", "mi_gaussians.cli", "view", str(TINY), "--port",
+                            str(busy.getsockname()[1])], capture_output=True, text=True, timeout=120)
+    finally:
+        busy.close()
+    assert r.returncode == 2 and "cannot serve there" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     for args, words in (((tmp_path / "missing.ply",), "not found"), ((tmp_path / "model.obj",), "expected a model"),
                         ((tmp_path,), "point_cloud.ply: missing")):
         r = subprocess.run([sys.executable, "-m", "mi_gaussians.cli", "view", *map(str, args)], capture_output=True,

@@ -156,6 +156,8 @@ def test_smallest_three_and_version_2(tmp_path):
     ("g.spz", gzip.compress(struct.pack("<IIIBBBB", 0x5053474E, 9, 1, 0, 12, 0, 0)), "version 9"),
     ("h.spz", struct.pack("<IIIBBBB", 0x5053474E, 4, 1, 0, 12, 0, 0), "zstd"),
     ("i.spz", gzip.compress(struct.pack("<IIIBBBB", 0x5053474E, 3, 1, 5, 12, 0, 0)), "SH degree 5"),
+    ("j.spz", (lambda z: z[:12] + bytes(b ^ 0xFF for b in z[12:40]) + z[40:])(
+        gzip.compress(bytes(range(256)) * 4, mtime=0)), "damaged"),
 ])
 def test_malformed_files_give_one_line(tmp_path, name, data, words):
     path = tmp_path / name

@@ -37,6 +37,7 @@ import gzip
 import math
 import os
 import struct
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -198,8 +199,8 @@ def read_spz(path) -> tuple[dict[str, np.ndarray], bool]:
         _fail(path, f".spz version {version} (the zstd container) is not supported; versions 2 and 3 are")
     try:
         data = gzip.decompress(raw)
-    except (OSError, EOFError, gzip.BadGzipFile) as e:
-        _fail(path, f"not a gzip-compressed .spz file ({e})")
+    except (OSError, EOFError, zlib.error) as e:          # (gzip.BadGzipFile is an OSError)
+        _fail(path, f"not a gzip-compressed .spz file, or a damaged one ({e})")
     if len(data) < 16:
         _fail(path, f"truncated .spz header ({len(data)} of 16 bytes)")
     magic, version, n, degree, frac, flags, _ = struct.unpack("<IIIBBBB", data[:16])
