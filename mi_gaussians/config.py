@@ -69,7 +69,7 @@ class OptimConfig:
     sh_increase_interval: int = 1000         # the active degree goes up by one every this many iterations
     random_background: bool = False          # a random background colour per iteration
     depth_weight: float = 0.0                # Mitsuba scenes: weight of the inverse-depth L1 against exact depth
-    depth_weight_final: float = 0.0          # ... decaying exponentially to this at the last iteration (--depth-weight W:
+    depth_weight_final: float = 0.0          # ... decaying exponentially to this over position_lr_max_steps (--depth-weight W:
                                              # W to W / 100, the 2024 reference's 1.0 to 0.01)
 
 

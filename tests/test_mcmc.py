@@ -279,3 +279,20 @@ def test_cli_mcmc_run_and_misuse(scene, tmp_path):  # noqa: F811
         r = _mi_gs("optimize", scene, "-o", tmp_path / "bad", *bad, "--quiet")
         assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert not (tmp_path / "bad").exists()
+
+
+def test_resumed_mcmc_run_equals_an_uninterrupted_one(scene, tmp_path, one_thread):  # noqa: F811
+    """A run stopped at iteration 60 (after relocations and growth) and resumed from its checkpoint ends, at 100,
+    with the model of a run that was never stopped: the draws' counter and the noise's key come back."""
+    from mi_gaussians.optim.trainer import Trainer
+
+    cfg = dataclasses.replace(small_config(100), strategy="mcmc", checkpoint_every=1000, eval_every=0,
+                              mcmc=MCMCConfig(cap_max=6000, refine_start_iter=10, refine_every=20))
+    first = dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, iterations=60))
+    Trainer(load(scene, first), first, tmp_path / "run", progress=False).run()
+    resumed = Trainer(load(scene, cfg), cfg, tmp_path / "run", progress=False)
+    resumed.run(resume=True)
+    whole = Trainer(load(scene, cfg), cfg, tmp_path / "whole", progress=False)
+    whole.run()
+    assert resumed.strategy_state.draws == whole.strategy_state.draws == 5          # 20, 40, ..., 100
+    assert_same_training(resumed, whole)

@@ -246,8 +246,10 @@ class Trainer:
                                       delay_steps=o.position_lr_delay_steps, delay_mult=o.position_lr_delay_mult)
 
     def _depth_weight(self, step: int) -> float:
+        """The depth-loss weight at ``step``: decaying over the run's schedule (``position_lr_max_steps``, which a
+        resume with more iterations keeps, as it keeps every schedule)."""
         o = self.cfg.optim
-        return expon_lr(step, o.depth_weight, o.depth_weight_final, o.iterations)
+        return expon_lr(step, o.depth_weight, o.depth_weight_final, o.position_lr_max_steps)
 
     def _draw(self) -> tuple[int, tuple]:
         """The training view and the background colour of the next iteration (advances both random streams)."""
