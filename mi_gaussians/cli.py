@@ -347,8 +347,6 @@ def _viewer_config(args):
 def _dataset_views(saved: dict, cfg, out: Path, split: str = "all"):
     """(ViewEntry list, colour space, background) of the dataset a run was trained on; no views (and a warning) when
     it cannot be loaded any more."""
-    from .viewer import ViewEntry
-
     try:
         ds = _eval_dataset(saved, cfg, out, None)
     except (InputError, ValueError, OSError, RuntimeError) as e:

@@ -34,6 +34,7 @@ import numpy as np
 
 from .config import RasterConfig
 from .data.camera import Camera, focal_from_fov, fov_from_focal
+from .data.colmap import quaternion_to_matrix
 
 RENDER_MODES = ("RGB", "Alpha", "Expected depth", "Gaussians per tile")
 
@@ -110,13 +111,6 @@ class TrainingView:
 
 
 # ---------------------------------------------------------------------------------------------------- cameras
-def _quat_to_matrix(wxyz) -> np.ndarray:
-    w, x, y, z = np.asarray(wxyz, np.float64) / np.linalg.norm(wxyz)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-
-
 def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
     """(w, x, y, z) of a rotation matrix (Shepperd's method: stable for every rotation)."""
     m = np.asarray(R, np.float64)
@@ -148,7 +142,7 @@ def image_size(aspect: float, longest: int) -> tuple[int, int]:
 def camera_from_pose(wxyz, position, fov_y: float, width: int, height: int, name: str = "") -> Camera:
     """The pinhole camera of a viser camera: orientation ``wxyz`` (camera to world, OpenCV axes, as viser's),
     centre ``position``, vertical field of view ``fov_y`` (radians), square pixels, centred principal point."""
-    R = _quat_to_matrix(wxyz)
+    R = quaternion_to_matrix(wxyz)
     w2c = np.eye(4)
     w2c[:3, :3] = R.T
     w2c[:3, 3] = -R.T @ np.asarray(position, np.float64)
@@ -274,7 +268,7 @@ class Viewer:
     def _set_initial_camera(self, cam: Camera) -> None:
         """New clients start at ``cam``, orbiting the point on its axis as far away as the model's median centre."""
         wxyz, pos, fov = pose_of_camera(cam)
-        R = _quat_to_matrix(wxyz)
+        R = quaternion_to_matrix(wxyz)
         g, _ = self.model.get()
         distance = 1.0
         if g.n:
