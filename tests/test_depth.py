@@ -5,8 +5,6 @@ differences), frozen training with the depth loss equal to traced training, and 
 from __future__ import annotations
 
 import dataclasses
-import subprocess
-import sys
 
 import drjit as dr
 import mitsuba as mi
@@ -127,12 +125,12 @@ def test_cli_depth_weight_needs_a_scene_file(tmp_path):
     from synthetic_dataset import make_blender_dataset
 
     scene = make_blender_dataset(tmp_path / "scene")
-    r = subprocess.run([sys.executable, "-m", "mi_gaussians.cli", "optimize", str(scene), "-o", str(tmp_path / "o"),
-                        "--depth-weight", "1"], capture_output=True, text=True)
+    from test_cli import run
+
+    r = run("optimize", scene, "-o", tmp_path / "o", "--depth-weight", "1")
     assert r.returncode == 2 and "scene .xml" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     for settings, words in ((["--set", "optim.depth_weight=1"], "scene .xml"),
                             (["--set", "data.random_init=sphere"], "data.random_init")):
-        r = subprocess.run([sys.executable, "-m", "mi_gaussians.cli", "optimize", str(scene), "-o",
-                            str(tmp_path / "o"), *settings], capture_output=True, text=True)
+        r = run("optimize", scene, "-o", tmp_path / "o", *settings)
         assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert not (tmp_path / "o").exists()

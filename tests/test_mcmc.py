@@ -9,8 +9,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import subprocess
-import sys
 from decimal import Decimal, getcontext
 
 import drjit as dr
@@ -253,9 +251,10 @@ def test_state_checkpoint_and_other_strategy_refused():
         d.import_state(arrays, meta, 10)
 
 
-def _mi_gs(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "mi_gaussians.cli", *map(str, args)], capture_output=True,
-                          text=True, cwd=cwd)
+def _mi_gs(*args):
+    from test_cli import run
+
+    return run(*args)
 
 
 def test_cli_mcmc_run_and_misuse(scene, tmp_path):  # noqa: F811

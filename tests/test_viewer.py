@@ -8,7 +8,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import shutil
 import socket
 import subprocess
@@ -21,6 +20,7 @@ import pytest
 
 from mi_gaussians.data.camera import Camera
 from mi_gaussians.model.gaussians import Gaussians
+from test_cli import run
 from mi_gaussians.viewer import (RENDER_MODES, StaticModel, TrainingView, Viewer, ViewerConfig, camera_from_pose,
                                  image_size, pose_of_camera, render_image)
 
@@ -129,8 +129,12 @@ def test_browser_shows_the_model_and_follows_the_mouse(tmp_path):
 
     sync_playwright, chromium = _browser()
     port = _free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "mi_gaussians.cli", "view", str(TINY), "--camera", str(CAMERA),
-                             "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    import tempfile
+
+    # (the installed mi-gs, run outside the source tree)
+    proc = subprocess.Popen([str(Path(sys.executable).parent / "mi-gs"), "view", str(TINY), "--camera", str(CAMERA),
+                             "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            cwd=tempfile.gettempdir())
     import threading
 
     watchdog = threading.Timer(120, proc.kill)         # (a hung viewer must not hang the suite)
@@ -147,9 +151,7 @@ def test_browser_shows_the_model_and_follows_the_mouse(tmp_path):
         wxyz, pos, fov = pose_of_camera(Camera.from_json(CAMERA))
         cam = camera_from_pose(wxyz, pos, fov, W, H)
         cam.to_json(tmp_path / "cam.json")
-        r = subprocess.run([sys.executable, "-m", "mi_gaussians.cli", "render", str(TINY), "--camera",
-                            str(tmp_path / "cam.json"), "-o", str(tmp_path / "ref.png")], capture_output=True,
-                           text=True)
+        r = run("render", TINY, "--camera", tmp_path / "cam.json", "-o", tmp_path / "ref.png")
         assert r.returncode == 0, r.stderr
         ref = np.asarray(Image.open(tmp_path / "ref.png").convert("RGB"), np.float64) / 255.0
         with sync_playwright() as p:
@@ -234,13 +236,11 @@ def test_view_misuse_gives_one_line(tmp_path):
     busy.bind(("127.0.0.1", 0))
     busy.listen()
     try:
-        r = subprocess.run([sys.executable, "-m", "mi_gaussians.cli", "view", str(TINY), "--port",
-                            str(busy.getsockname()[1])], capture_output=True, text=True, timeout=120)
+        r = run("view", TINY, "--port", busy.getsockname()[1])
     finally:
         busy.close()
     assert r.returncode == 2 and "cannot serve there" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     for args, words in (((tmp_path / "missing.ply",), "not found"), ((tmp_path / "model.obj",), "expected a model"),
                         ((tmp_path,), "point_cloud.ply: missing")):
-        r = subprocess.run([sys.executable, "-m", "mi_gaussians.cli", "view", *map(str, args)], capture_output=True,
-                           text=True, env={**os.environ})
+        r = run("view", *args)
         assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr

@@ -8,8 +8,6 @@ import gzip
 import json
 import math
 import struct
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -168,7 +166,9 @@ def test_malformed_files_give_one_line(tmp_path, name, data, words):
 
 
 def _mi_gs(*args):
-    return subprocess.run([sys.executable, "-m", "mi_gaussians.cli", *map(str, args)], capture_output=True, text=True)
+    from test_cli import run               # (the installed mi-gs, outside the source tree)
+
+    return run(*args)
 
 
 def _psnr(a, b):
