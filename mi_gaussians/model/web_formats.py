@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..conventions import SH_C0, sh_coeff_count, sh_degree_from_coeff_count
+from ..conventions import SH_C0, logit, sh_coeff_count, sh_degree_from_coeff_count, sigmoid
 from ..io_utils import atomic_write_bytes
 
 SPLAT_ROW = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rotation", "u1", 4)])
@@ -56,15 +56,6 @@ SPZ_SH_FLIP = np.array([-1, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1], np
 _FLIP_XYZ = np.array([1, -1, -1], np.float32)
 
 FORMATS = (".ply", ".splat", ".spz")
-
-
-def _sigmoid(x):
-    return 1.0 / (1.0 + np.exp(-np.asarray(x, np.float64)))
-
-
-def _logit(p):
-    p = np.asarray(p, np.float64)
-    return np.log(p / (1.0 - p))
 
 
 def _u8(x) -> np.ndarray:
@@ -86,7 +77,7 @@ def _fail(path, msg: str):
 def splat_bytes(p: dict) -> bytes:
     """The ``.splat`` file of the raw parameters ``p`` (higher SH bands are dropped)."""
     scales = np.asarray(p["scales"], np.float64)
-    opacity = _sigmoid(p["opacities"])
+    opacity = sigmoid(np.asarray(p["opacities"], np.float64))
     order = np.argsort(-np.exp(scales.sum(axis=1)) * opacity, kind="stable")
     rows = np.zeros(len(order), SPLAT_ROW)
     rows["position"] = np.asarray(p["means"], np.float32)[order]
@@ -115,7 +106,7 @@ def read_splat(path) -> dict[str, np.ndarray]:
     alpha = np.clip(rgba[:, 3], 0.5, 254.5) / 255.0
     q = (rows["rotation"].astype(np.float64) - 128.0) / 128.0
     return {"means": pos, "scales": np.log(scale).astype(np.float32), "rotations": q.astype(np.float32),
-            "opacities": _logit(alpha).astype(np.float32),
+            "opacities": logit(alpha).astype(np.float32),
             "sh_dc": ((rgba[:, :3] / 255.0 - 0.5) / SH_C0).astype(np.float32),
             "sh_rest": np.zeros((len(rows), 0, 3), np.float32)}
 
@@ -173,7 +164,7 @@ def spz_bytes(p: dict, antialiased: bool = False) -> bytes:
         raise ValueError(f"positions beyond +-{(1 << 23) / (1 << SPZ_FRACTIONAL_BITS):g} do not fit .spz's 24-bit "
                          "fixed point")
     pos = fixed.astype("<i4").view(np.uint8).reshape(n, 3, 4)[:, :, :3].reshape(-1)
-    alphas = _u8(255.0 * _sigmoid(p["opacities"]))
+    alphas = _u8(255.0 * sigmoid(np.asarray(p["opacities"], np.float64)))
     colours = _u8(np.asarray(p["sh_dc"], np.float64) * (SPZ_COLOUR_SCALE * 255.0) + 127.5)
     scales = _u8((np.asarray(p["scales"], np.float64) + 10.0) * 16.0)
     q = _unit_quaternions(p["rotations"]) * np.array([1.0, 1.0, -1.0, -1.0])
@@ -243,7 +234,7 @@ def read_spz(path) -> tuple[dict[str, np.ndarray], bool]:
     q = q * np.array([1.0, 1.0, -1.0, -1.0])
     sh = (take(3 * k * n).reshape(n, k, 3).astype(np.float64) - 128.0) / 128.0 * SPZ_SH_FLIP[:k, None]
     params = {"means": means.astype(np.float32), "scales": scales.astype(np.float32),
-              "rotations": q.astype(np.float32), "opacities": _logit(alpha).astype(np.float32),
+              "rotations": q.astype(np.float32), "opacities": logit(alpha).astype(np.float32),
               "sh_dc": colours.astype(np.float32), "sh_rest": sh.astype(np.float32)}
     return params, bool(flags & SPZ_FLAG_ANTIALIASED)
 

@@ -45,6 +45,7 @@ from scipy.special import comb
 
 from ..config import MCMCConfig
 from ..conventions import logit
+from ..conventions import sigmoid as sigmoid_np
 from ..drjit_utils import quaternion_to_matrix, sigmoid
 from .adam import GaussianAdam
 from .strategy import StepInfo, Strategy
@@ -183,7 +184,7 @@ class MCMCStrategy(Strategy):
         return info
 
     def _opacities(self, params: GaussianAdam) -> np.ndarray:
-        return 1.0 / (1.0 + np.exp(-np.array(params["opacities"].array, np.float64)))
+        return sigmoid_np(np.array(params["opacities"].array, np.float64))
 
     def _corrected(self, params: GaussianAdam, sources: np.ndarray, o: np.ndarray) -> dict:
         """New opacity and scale rows (raw values) of the sources ``sources`` (indices, with repeats) after they are
