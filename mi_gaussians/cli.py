@@ -583,8 +583,7 @@ def _optimize_config(args, src: Path, out: Path):
     cfg = _train_config(args, scene_file=_is_scene_file(src))
     try:
         cfg = cfg.with_settings(args.settings or ())
-        if args.max_gaussians is not None and cfg.strategy != "mcmc":
-            raise InputError("--max-gaussians is the budget of --strategy mcmc (the default strategy has none)")
+        _check_strategy_options(cfg, args)
         _check_settings(cfg, _is_scene_file(src))
         from .optim.trainer import make_strategy
 
@@ -592,6 +591,26 @@ def _optimize_config(args, src: Path, out: Path):
         return cfg, None
     except ValueError as e:
         raise InputError(str(e)) from None
+
+
+# the settings section each strategy reads (an option of the other strategy would be silently ignored)
+_STRATEGY_SECTIONS = {"default": "densify", "mcmc": "mcmc"}
+
+
+def _check_strategy_options(cfg, args) -> None:
+    """Refuses an option or ``--set`` of the strategy the run does not use."""
+    if args.max_gaussians is not None and cfg.strategy != "mcmc":
+        raise InputError("--max-gaussians is the budget of --strategy mcmc (the default strategy has none)")
+    if cfg.densify.absgrad and cfg.strategy != "default":
+        raise InputError(f"--absgrad is an option of the default strategy; --strategy {cfg.strategy} does not "
+                         f"densify on gradients (leave out one of them)")
+    own = _STRATEGY_SECTIONS.get(cfg.strategy)
+    for text in args.settings or ():
+        section = str(text).partition("=")[0].strip().partition(".")[0]
+        if section in _STRATEGY_SECTIONS.values() and section != own:
+            other = next(k for k, v in _STRATEGY_SECTIONS.items() if v == section)
+            raise InputError(f"setting {str(text).partition('=')[0].strip()!r}: the {section} section configures "
+                             f"--strategy {other}, not the {cfg.strategy} strategy of this run")
 
 
 def _check_settings(cfg, scene_file: bool) -> None:

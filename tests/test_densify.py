@@ -398,6 +398,11 @@ def test_absgrad_statistic_and_threshold():
             want = np.hypot(np.array(a.x) * 16, np.array(a.y) * 12)      # NDC: W/2 = 16, H/2 = 12
             np.testing.assert_allclose(accum[True], want, rtol=1e-6)
     assert np.all(accum[True] >= accum[False] * (1 - 1e-6)) and np.any(accum[True] > 1.2 * accum[False])
+    # no statistics gathered (after densify_until_iter): the backward pass is not asked for the sums
+    out = render(params.gaussians, cam)
+    s.step_pre_backward(params, state, 20_000, out, collect=s.updates_state_at(20_000))
+    with pytest.raises(ValueError, match="request_absgrad"):
+        out.means2d_absgrad
     # the threshold: a mean statistic between the two thresholds densifies only in the plain mode
     mid = 5e-4
     for absgrad, expect in ((False, 1), (True, 0)):

@@ -274,9 +274,15 @@ def test_cli_mcmc_run_and_misuse(scene, tmp_path):  # noqa: F811
     r = _mi_gs("optimize", scene, "-o", out, "--iterations", "150", "--resume", "--quiet")
     assert r.returncode == 0, r.stderr
     for bad, words in ((["--max-gaussians", "10"], "--strategy mcmc"), (["--set", "strategy=sgd"], "sgd"),
-                       (["--strategy", "mcmc", "--set", "mcmc.init_opacity=1.5"], "init_opacity")):
+                       (["--strategy", "mcmc", "--set", "mcmc.init_opacity=1.5"], "init_opacity"),
+                       # an option of the other strategy would be silently ignored: refused
+                       (["--strategy", "mcmc", "--absgrad"], "--absgrad"),
+                       (["--set", "strategy=mcmc", "--set", "densify.absgrad=true"], "--absgrad"),
+                       (["--strategy", "mcmc", "--set", "densify.grad_threshold=0.001"], "densify.grad_threshold"),
+                       (["--set", "mcmc.noise_lr=1000"], "mcmc.noise_lr")):
         r = _mi_gs("optimize", scene, "-o", tmp_path / "bad", *bad, "--quiet")
         assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert not (tmp_path / "bad").exists()
         assert not (tmp_path / "bad").exists()
 
 

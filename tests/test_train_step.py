@@ -119,6 +119,20 @@ def test_frozen_training_equals_traced_training(scene, one_thread, capacity):  #
     assert_same_training(frozen, traced)
 
 
+def test_frozen_absgrad_training_equals_traced_training(scene, one_thread):  # noqa: F811
+    """With --absgrad, densifying at 100 and until 110 of 130 iterations: the frozen steps that gather statistics
+    ask the backward pass for the absolute sums and those after 110 do not, and the run ends with the traced loop's
+    model, bit for bit."""
+    cfg = small_config(300)
+    cfg = dataclasses.replace(cfg, densify=dataclasses.replace(cfg.densify, absgrad=True, densify_from_iter=50,
+                                                               densify_until_iter=110,
+                                                               absgrad_threshold=1e-4))
+    frozen = _train(scene, cfg, 130)
+    traced = _train(scene, dataclasses.replace(cfg, freeze=False), 130)
+    assert frozen.params.n != cfg.data.random_points          # (densification did happen)
+    assert_same_training(frozen, traced)
+
+
 def assert_same_training(a, b) -> None:
     """Two trainers ended with the same model, moments, strategy state, losses and view order, bit for bit."""
     assert a.params.n == b.params.n and a.history.loss == b.history.loss

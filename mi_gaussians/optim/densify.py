@@ -156,10 +156,10 @@ class DefaultStrategy(Strategy):
         return state
 
     # ------------------------------------------------------------------ hook
-    def step_pre_backward(self, params, state, step: int | None, out) -> None:
-        """With ``absgrad``, ask the backward pass for the per-pixel absolute gradient sums (every iteration, so a
-        frozen step records the same kernels each time)."""
-        if self.cfg.absgrad:
+    def step_pre_backward(self, params, state, step: int | None, out, collect: bool = True) -> None:
+        """With ``absgrad``, ask the backward pass for the per-pixel absolute gradient sums on every iteration
+        whose statistics are gathered (``collect``; a frozen step records with and without them)."""
+        if self.cfg.absgrad and collect:
             out.request_absgrad()
 
     def step_post_backward(self, params: GaussianAdam, state: DensifyState, step: int, out) -> StepInfo:

@@ -75,12 +75,13 @@ class Strategy:
         """A fresh state for a model of ``n`` Gaussians."""
         raise NotImplementedError
 
-    def step_pre_backward(self, params, state, step: int | None, out) -> None:
+    def step_pre_backward(self, params, state, step: int | None, out, collect: bool = True) -> None:
         """Called after the render of iteration ``step`` and before ``dr.backward``; a frozen step calls it with
-        ``step=None`` while it records (so it must do device work only, the same on every iteration). Our rasterizer always records
-        what densification needs from the backward pass (``RenderOutput.means2d_grad``), so the default does
-        nothing; a strategy that must mark something for the backward pass overrides it (e.g.
-        ``out.request_absgrad()``)."""
+        ``step=None`` while it records (so it must do device work only, the same on every iteration). ``collect``
+        says whether this iteration's statistics will be gathered (:meth:`updates_state_at`), so that a request
+        only the statistics use can be left out when they are not. Our rasterizer always records what
+        densification needs from the backward pass (``RenderOutput.means2d_grad``), so the default does nothing;
+        a strategy that must mark something for the backward pass overrides it (e.g. ``out.request_absgrad()``)."""
 
     def regularization(self, params):
         """A term added to the loss, differentiable in ``params``' tensors (a 1-element ``mi.Float``), or None. Device

@@ -79,6 +79,20 @@ def composite_target(target, transparency, background, fixed_background) -> "mi.
     return target + transparency * mi.TensorXf(flat, (1, 1, 3))
 
 
+def training_loss(out, target, lambda_dssim, strategy: Strategy, params: GaussianAdam, depth_target=None,
+                  depth_weight=None) -> "mi.Float":
+    """The loss an iteration minimizes, the one home of its assembly for the frozen step and the traced loop: the
+    photometric (L1 + D-SSIM) loss of render ``out`` against ``target``, the strategy's regularizers, and the depth
+    loss weighted by ``depth_weight`` where a ``depth_target`` is given."""
+    loss = photometric_loss(out.rgb, target, lambda_dssim)
+    reg = strategy.regularization(params)
+    if reg is not None:
+        loss = loss + reg
+    if depth_target is not None:
+        loss = loss + depth_weight * depth_loss(out.depth, out.alpha, depth_target)
+    return loss
+
+
 class TrainStep:
     """A training iteration without host synchronization: render, loss, backward, statistics, masked Adam step.
 
@@ -97,14 +111,9 @@ class TrainStep:
             # (n, the number of Gaussians, is an argument so that a new count always makes a new recording)
             out = render(params.gaussians, inputs.view, background=inputs.background, sh_degree=sh_degree,
                          cfg=raster, capacity=capacity)
-            strategy.step_pre_backward(params, state, None, out)
+            strategy.step_pre_backward(params, state, None, out, collect=update_state)
             target = composite_target(inputs.target, inputs.transparency, inputs.background, fixed)
-            loss = photometric_loss(out.rgb, target, lam)
-            reg = strategy.regularization(params)
-            if reg is not None:
-                loss = loss + reg
-            if inputs.depth_target is not None:
-                loss = loss + inputs.depth_weight * depth_loss(out.depth, out.alpha, inputs.depth_target)
+            loss = training_loss(out, target, lam, strategy, params, inputs.depth_target, inputs.depth_weight)
             dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
             ok = valid & out.fits & dr.isfinite(loss)
             if update_state:

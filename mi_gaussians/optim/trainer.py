@@ -44,9 +44,9 @@ from .adam import GaussianAdam
 from .densify import DefaultStrategy
 from .mcmc import MCMCStrategy
 from .strategy import Strategy
-from .losses import depth_loss, inverse_depth_target, photometric_loss
+from .losses import inverse_depth_target
 from .schedules import expon_lr, sh_degree_at
-from .train_step import StepInputs, TrainStep, capacity_for, composite_target
+from .train_step import StepInputs, TrainStep, capacity_for, composite_target, training_loss
 
 CHECKPOINT = Path("checkpoints") / "ckpt.npz"
 
@@ -269,14 +269,12 @@ class Trainer:
         idx, bg = self._draw()
         view = self.ds.train[idx]
         out = render(g, view.camera, background=bg, sh_degree=degree, cfg=cfg.raster)
-        self.strategy.step_pre_backward(self.params, self.strategy_state, step, out)
-        loss = photometric_loss(out.rgb, self.target(idx, bg), o.lambda_dssim)
-        reg = self.strategy.regularization(self.params)
-        if reg is not None:
-            loss = loss + reg
-        if self.depth_targets is not None:
-            loss = loss + dr.opaque(mi.Float, self._depth_weight(step)) * depth_loss(out.depth, out.alpha,
-                                                                                    self.depth_targets[idx])
+        self.strategy.step_pre_backward(self.params, self.strategy_state, step, out,
+                                        collect=self.strategy.updates_state_at(step))
+        depth = self.depth_targets is not None
+        loss = training_loss(out, self.target(idx, bg), o.lambda_dssim, self.strategy, self.params,
+                             self.depth_targets[idx] if depth else None,
+                             dr.opaque(mi.Float, self._depth_weight(step)) if depth else None)
         # (a view where nothing is visible gives a loss that does not depend on the parameters)
         dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
         value = float(loss[0])
