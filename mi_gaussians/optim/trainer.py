@@ -280,8 +280,7 @@ class Trainer:
         value = float(loss[0])
         self.syncs += 2          # (this read, and the binning's read of its instance count)
         if not math.isfinite(value):
-            raise TrainingDiverged(f"the loss became {value} at iteration {step} (view {view.name}); the last good "
-                                   f"checkpoint ({self.out / CHECKPOINT}) is kept")
+            raise self._diverged(value, step, idx)
         info = self.strategy.step_post_backward(self.params, self.strategy_state, step, out)
         if not info.changed:
             # (after a densification step the reference's parameters are new tensors without gradients, so its
@@ -290,6 +289,10 @@ class Trainer:
         self.strategy.step_post_update(self.params, self.strategy_state, dr.opaque(mi.UInt32, step),
                                        dr.opaque(mi.Float, self._means_lr(step)))
         return value, int(out.n_instances)
+
+    def _diverged(self, loss: float, step: int, view: int) -> TrainingDiverged:
+        return TrainingDiverged(f"the loss became {loss} at iteration {step} (view {self.ds.train[view].name}); the "
+                                f"last good checkpoint ({self.out / CHECKPOINT}) is kept")
 
     def _traced_at(self, step: int) -> bool:
         """Whether iteration ``step`` runs traced: always without freezing; else the first one (it measures the
@@ -351,9 +354,7 @@ class Trainer:
                     self.bg_rng.bit_generator.state = p.host[1]
                     self.step = p.step - 1
                     return False
-                raise TrainingDiverged(f"the loss became {loss} at iteration {p.step} (view "
-                                       f"{self.ds.train[p.view].name}); the last good checkpoint "
-                                       f"({self.out / CHECKPOINT}) is kept")
+                raise self._diverged(loss, p.step, p.view)
             self._peak = max(self._peak, instances)
             self._commit(p.step, loss)
         return True
