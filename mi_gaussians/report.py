@@ -9,6 +9,7 @@ import numpy as np
 
 from .imwrite import display_encode, write_image, write_png
 from .io_utils import atomic_path, atomic_write_text
+from .run_folder import COMPARE, RENDERS
 
 
 def error_image(render: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -28,11 +29,11 @@ def write_view_outputs(out_dir: Path, scores, color_space: str) -> None:
     """renders/<name>.exr + .png and compare/<name>.png for every scored view (with images kept)."""
     for s in scores:
         stem = Path(s.name).stem
-        write_image(out_dir / "renders" / f"{stem}.exr", s.render, color_space)
-        write_image(out_dir / "renders" / f"{stem}.png", s.render, color_space)
+        write_image(out_dir / RENDERS / f"{stem}.exr", s.render, color_space)
+        write_image(out_dir / RENDERS / f"{stem}.png", s.render, color_space)
         # compare what a person sees: the display-encoded images
         ref, img = display_encode(s.target, color_space), display_encode(s.render, color_space)
-        write_png(out_dir / "compare" / f"{stem}.png", side_by_side(img, ref))
+        write_png(out_dir / COMPARE / f"{stem}.png", side_by_side(img, ref))
 
 
 def write_json(path: Path, data: dict) -> None:

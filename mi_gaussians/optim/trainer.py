@@ -39,7 +39,7 @@ from ..io_utils import atomic_path
 from ..model.gaussians import Gaussians
 from ..raster.projection import ViewParams
 from ..raster.rasterize import render
-from .. import report
+from .. import report, run_folder
 from .adam import GaussianAdam
 from .densify import DefaultStrategy
 from .mcmc import MCMCStrategy
@@ -48,7 +48,7 @@ from .losses import inverse_depth_target
 from .schedules import expon_lr, sh_degree_at
 from .train_step import StepInputs, TrainStep, capacity_for, composite_target, training_loss
 
-CHECKPOINT = Path("checkpoints") / "ckpt.npz"
+CHECKPOINT = Path(run_folder.CHECKPOINT)
 
 # Frozen iterations queued between two reads of their losses and flags (progress bar, history, overflow, NaN). More
 # keeps the device busier; fewer wastes fewer iterations when one overflows its instance capacity and is replayed.
@@ -425,7 +425,7 @@ class Trainer:
         saved = {"dataset": str(Path(self.ds.root).resolve()), **(record or {}), "train": cfg.to_dict()}
         if self.ds.references is not None:
             saved["references"] = str(Path(self.ds.references).resolve())
-        report.write_json(self.out / "config.json", saved)
+        report.write_json(self.out / run_folder.CONFIG, saved)
         total = cfg.optim.iterations
         self._bar = tqdm(total=total, initial=self.step, disable=not self.progress, unit="it", dynamic_ncols=True)
         self._ema = None
@@ -449,7 +449,7 @@ class Trainer:
                         self.history.eval_iteration.append(step)
                         self.history.test_psnr.append(self._last_psnr)
                 if step in cfg.save_iterations and step != total:
-                    self.gaussians.save_ply(self.out / f"point_cloud_{step}.ply")
+                    self.gaussians.save_ply(self.out / run_folder.saved_model(step))
                 if step % cfg.checkpoint_every == 0 or step == total:
                     self.save_checkpoint()
         finally:
@@ -460,7 +460,7 @@ class Trainer:
     def finish(self) -> dict:
         """Final outputs: PLY, test renders and comparisons, metrics.json, curves."""
         g = self.gaussians
-        g.save_ply(self.out / "point_cloud.ply")
+        g.save_ply(self.out / run_folder.MODEL)
         views = self.ds.test if self.ds.test else self.ds.train[:1]
         scores, note = evaluate_views(g, views, self.background, cfg=self.cfg.raster, keep_images=True,
                                       color_space=self.ds.color_space)
@@ -476,7 +476,7 @@ class Trainer:
         depth = depth_error(g, views, cfg=self.cfg.raster)
         if depth is not None:
             metrics["depth_mae"], metrics["depth_coverage"] = depth["depth_mae"], round(depth["coverage"], 6)
-        report.write_json(self.out / "metrics.json", metrics)
-        report.write_json(self.out / "history.json", self.history.to_dict())
-        report.plot_curves(self.out / "curves.png", self.history.to_dict())
+        report.write_json(self.out / run_folder.METRICS, metrics)
+        report.write_json(self.out / run_folder.HISTORY, self.history.to_dict())
+        report.plot_curves(self.out / run_folder.CURVES, self.history.to_dict())
         return metrics
