@@ -346,9 +346,10 @@ def _viewer_config(args):
 
 def _dataset_views(saved: dict, cfg, out: Path, split: str = "all"):
     """(ViewEntry list, colour space, background) of the dataset a run was trained on; no views (and a warning) when
-    it cannot be loaded any more."""
+    it cannot be loaded any more. A scene file's references are not rendered again: views whose reference is gone
+    have no picture in the panel."""
     try:
-        ds = _eval_dataset(saved, cfg, out, None)
+        ds = _eval_dataset(saved, cfg, out, None, render_missing=False)
     except (InputError, ValueError, OSError, RuntimeError) as e:
         print(f"mi-gs: warning: the run's dataset cannot be loaded ({e}); viewing without its cameras",
               file=sys.stderr)
@@ -359,9 +360,8 @@ def _dataset_views(saved: dict, cfg, out: Path, split: str = "all"):
 def _entries(ds):
     from .viewer import ViewEntry
 
-    return [ViewEntry(f"{kind} {v.name}", v.camera, v.load_image) for kind, views in (("train", ds.train),
-                                                                                      ("test", ds.test))
-            for v in views]
+    return [ViewEntry(f"{kind} {v.name}", v.camera, v.load_image if Path(v.image_path).is_file() else None)
+            for kind, views in (("train", ds.train), ("test", ds.test)) for v in views]
 
 
 def _default_camera(g):
@@ -720,9 +720,9 @@ def _training_viewer(args, trainer, ds, cfg):
 
 
 def _load_input(src: Path, cfg, out: Path, cache: str | None = None, progress: bool = True,
-                expect_key: str | None = None):
+                expect_key: str | None = None, render_missing: bool = True):
     """The dataset of a scene folder, or of a Mitsuba scene file (references cached in ``cache`` or
-    OUTDIR/references)."""
+    OUTDIR/references; those missing rendered unless ``render_missing`` is False)."""
     d = cfg.data
     if _is_scene_file(src):
         from .data.scene_dataset import load_scene_dataset
@@ -730,7 +730,8 @@ def _load_input(src: Path, cfg, out: Path, cache: str | None = None, progress: b
 
         return load_scene_dataset(src, cfg.scene, cache_root=references_root(out, cache), background=d.background,
                                   test_every=d.test_every, seed=d.seed, progress=progress,
-                                  log=lambda line: print(line, file=sys.stderr, flush=True), expect_key=expect_key)
+                                  log=lambda line: print(line, file=sys.stderr, flush=True), expect_key=expect_key,
+                                  render_missing=render_missing)
     from .data.dataset import load_dataset
 
     return load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
@@ -739,9 +740,9 @@ def _load_input(src: Path, cfg, out: Path, cache: str | None = None, progress: b
 
 
 # ------------------------------------------------------------------------------------------------------ eval
-def _eval_dataset(saved: dict, cfg, out: Path, dataset: str | None):
+def _eval_dataset(saved: dict, cfg, out: Path, dataset: str | None, render_missing: bool = True):
     """The dataset a run is evaluated on: ``dataset``, else the one it was trained on (a scene file's references
-    from the run's cache, rendered again only if they are gone; no initial points)."""
+    from the run's cache, rendered again only if they are gone and ``render_missing``; no initial points)."""
     import dataclasses
 
     from . import run_folder
@@ -751,7 +752,7 @@ def _eval_dataset(saved: dict, cfg, out: Path, dataset: str | None):
     if _is_scene_file(src):
         cfg = dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, init="random", init_points=1))
         return _load_input(src, cfg, out, cache=run_folder.saved_cache(saved, out),
-                           expect_key=run_folder.saved_key(saved))
+                           expect_key=run_folder.saved_key(saved), render_missing=render_missing)
     d = cfg.data
     return load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
                         random_points=0, masks=d.masks)

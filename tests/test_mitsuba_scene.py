@@ -274,11 +274,22 @@ def test_references_are_cached_and_keyed(tmp_path, monkeypatch):
     files[0].unlink()
     load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", progress=False)
     assert len(calls) == 1                              # only what is missing
+    # the viewer's load renders nothing: the view whose reference is gone has no picture
+    from mi_gaussians.cli import _entries
+
+    files[0].unlink()
+    ds = load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", progress=False, render_missing=False)
+    assert len(calls) == 1 and not files[0].exists()
+    assert [v.image_path for v in ds.train + ds.test if not v.image_path.is_file()] == [files[0]]
+    entries = _entries(ds)
+    assert [e.reference is None for e in entries].count(True) == 1 and len(entries) == 4
+    load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", progress=False)
+    assert len(calls) == 2 and files[0].is_file()
     load_scene_dataset(p, dataclasses.replace(cfg, spp=2), cache_root=tmp_path / "refs", progress=False)
-    assert len(calls) == 5                              # another sample count: another key
+    assert len(calls) == 6                              # another sample count: another key
     write_scene(p, w=16, h=16, spp=4, sky="0.2, 0.2, 0.2")
     load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", progress=False)
-    assert len(calls) == 9 and len(list((tmp_path / "refs").iterdir())) == 3   # an edited scene: another key
+    assert len(calls) == 10 and len(list((tmp_path / "refs").iterdir())) == 3   # an edited scene: another key
 
 
 def test_background_is_in_the_training_colour_space(tmp_path):

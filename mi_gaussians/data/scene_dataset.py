@@ -71,19 +71,21 @@ def _reference_view(c: Camera, path: Path, bg_linear: tuple, linear: bool) -> Vi
 def load_scene_dataset(path: str | os.PathLike, cfg: SceneConfig = SceneConfig(), cache_root: str | os.PathLike = ".",
                        background=(0.0, 0.0, 0.0), test_every: int = DataConfig().test_every, seed: int = 0,
                        progress: bool = True, log: Callable[[str], None] | None = None,
-                       expect_key: str | None = None) -> Dataset:
+                       expect_key: str | None = None, render_missing: bool = True) -> Dataset:
     """Load ``path``, make its cameras, render (or reuse) the references, initialize points: a ``Dataset``.
 
     ``expect_key``: the references key of an earlier run (``--resume``, ``mi-gs eval``); a scene that no longer
-    gives it is refused before anything is rendered."""
+    gives it is refused before anything is rendered. ``render_missing=False`` (the viewer, which wants the cameras):
+    references not in the cache are not rendered, and those views' ``image_path`` does not exist."""
     p = Path(path)
     scene = load_scene(p, cfg.defines)
     views = scene_views(scene, p, cfg, test_every=test_every, seed=seed)
     key = cache_key(p, views, cfg.defines)
     _check_key(p, key, expect_key)
     cache_dir = Path(cache_root) / key
-    write_rig_file(cache_dir, p, cfg.defines, key, views)
-    paths = render_references(scene, views, cache_dir, progress=progress, log=log)
+    if render_missing:
+        write_rig_file(cache_dir, p, cfg.defines, key, views)
+    paths = render_references(scene, views, cache_dir, progress=progress, log=log, render=render_missing)
     bg, bg_linear = _composite_background(background, cfg.linear)
     train = [_reference_view(c, paths[c.name], bg_linear, cfg.linear) for c in views.train]
     test = [_reference_view(c, paths[c.name], bg_linear, cfg.linear) for c in views.test]

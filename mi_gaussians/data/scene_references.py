@@ -125,12 +125,15 @@ def depth_path(exr: Path) -> Path:
 
 
 def render_references(scene, views: SceneViews, cache_dir: Path, progress: bool = True,
-                      log: Callable[[str], None] | None = None) -> dict[str, Path]:
-    """Render every camera that has no EXR (or no depth) in ``cache_dir`` yet; returns camera name -> EXR path."""
+                      log: Callable[[str], None] | None = None, render: bool = True) -> dict[str, Path]:
+    """Render every camera that has no EXR (or no depth) in ``cache_dir`` yet; returns camera name -> EXR path.
+    ``render=False``: render nothing, only say where each reference is (or would be)."""
     from tqdm import tqdm
 
     cams = [("train", i, c) for i, c in enumerate(views.train)] + [("test", i, c) for i, c in enumerate(views.test)]
     paths = {c.name: cache_dir / split / f"{c.name}.exr" for split, _, c in cams}
+    if not render:
+        return paths
     todo = [(split, i, c) for split, i, c in cams if not paths[c.name].is_file()]
     if todo and log is not None:
         log(f"rendering {len(todo)} of {len(cams)} references at {views.spp} spp -> {cache_dir}")
