@@ -605,6 +605,8 @@ def _check_strategy_options(cfg, args) -> None:
         raise InputError(f"--absgrad is an option of the default strategy; --strategy {cfg.strategy} does not "
                          f"densify on gradients (leave out one of them)")
     own = _STRATEGY_SECTIONS.get(cfg.strategy)
+    if own is None:          # (an unknown strategy: make_strategy names it)
+        return
     for text in args.settings or ():
         section = str(text).partition("=")[0].strip().partition(".")[0]
         if section in _STRATEGY_SECTIONS.values() and section != own:

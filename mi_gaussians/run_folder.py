@@ -29,15 +29,16 @@ REFERENCES = "references"
 RUN_OUTPUTS = (CHECKPOINTS, RENDERS, COMPARE, CONFIG, METRICS, EVAL, HISTORY, CURVES, GAUSSIAN_SCENE, MODEL)
 _SAVED_MODELS = "point_cloud_*.ply"       # the models of TrainConfig.save_iterations
 
-
-def saved_model(step: int) -> str:
-    """The model saved at iteration ``step`` (``TrainConfig.save_iterations``)."""
-    return f"point_cloud_{step}.ply"
 LOCK = ".mi-gs.lock"
 # io_utils.atomic_path's temporary files (".<name>.<8 random characters from mkstemp>.tmp<ext>"), left behind when a
 # process was killed while writing; looked for only in the folders a run writes
 _TEMPORARY = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?$")
 _WRITTEN_FOLDERS = ("", CHECKPOINTS, RENDERS, COMPARE)
+
+
+def saved_model(step: int) -> str:
+    """The model saved at iteration ``step`` (``TrainConfig.save_iterations``)."""
+    return f"point_cloud_{step}.ply"
 
 
 class FolderBusy(ValueError):
