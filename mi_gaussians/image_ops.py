@@ -367,11 +367,12 @@ class _LossOp(_TwoImageOp):
         Float = type(self.x)
         g = Float(g)
         dr.make_opaque(g)
-        s_scale = g * (self.b * self.inv_n)
+        # (the weights as opaque arrays too: ``g * python_float`` would compile one kernel per lambda)
+        s_scale = g * _opaque(Float, self.b * self.inv_n)
         dr.make_opaque(s_scale)
         l1_scale = None
         if self.a != 0.0:
-            l1_scale = g * (self.a * self.inv_n)
+            l1_scale = g * _opaque(Float, self.a * self.inv_n)
             dr.make_opaque(l1_scale)
         return _backward(self.x, self.y, self.coef, self.coef_ids, self.shape, self.weights, s_scale, l1_scale,
                          self.need_img, self.need_ref)

@@ -192,10 +192,7 @@ def test_no_recompilation_when_the_training_view_changes(scene, tmp_path, random
     """After a warm-up, training iterations on other views (other cameras of the same size, other targets, other
     background colours, other instance counts) launch only kernels that are already compiled: per-view values travel
     as opaque arrays, never as kernel literals. Runs on any variant (``pytest --variant cuda_ad_rgb``)."""
-    import gc
-
-    import drjit as dr
-
+    from kernel_log import KernelLog
     from mi_gaussians.optim.trainer import Trainer
 
     cfg = small_config(1000)
@@ -203,24 +200,16 @@ def test_no_recompilation_when_the_training_view_changes(scene, tmp_path, random
                                                              random_background=random_background),
                               densify=dataclasses.replace(cfg.densify, densify_from_iter=10_000))
     tr = Trainer(load(scene, cfg), cfg, tmp_path / "run", progress=False)
-    dr.eval()
-    gc.collect()
-    gc.disable()        # (nothing freed by the collector may change what the measured kernels contain)
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    try:
+    with KernelLog() as log:
         for step in range(1, 4):
             tr._iteration(step)
-        dr.kernel_history()                                    # clear
+        log.cut()
         for step in range(4, 4 + 2 * len(tr.ds.train)):      # every training view at least once
             tr._iteration(step)
-        history = dr.kernel_history()
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, False)
-        gc.enable()
-    jit = [k for k in history if k["type"] == dr.KernelType.JIT]
-    assert len(jit) > 20
-    missed = [(k["size"], k["hash"]) for k in jit if not k["cache_hit"]]
-    assert not missed, f"{len(missed)} of {len(jit)} kernels compiled anew: {missed[:5]}"
+        log.cut()
+    assert len(log.windows[1]) > 20
+    unseen = log.unseen(1)
+    assert not unseen, f"{len(unseen)} of {len(log.windows[1])} kernels not launched in the warm-up: {unseen[:5]}"
 
 
 def test_bad_dataset_refused_before_training(tmp_path):

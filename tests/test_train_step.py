@@ -12,6 +12,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from kernel_log import KernelLog
 from mi_gaussians.optim.adam import GaussianAdam
 from test_adam import EXTENT, loss_and_backward, make_gaussians
 from test_train import load, scene, small_config  # noqa: F401  (scene is a fixture)
@@ -152,32 +153,22 @@ def assert_same_training(a, b) -> None:
 def test_replays_record_and_compile_nothing_new(scene):  # noqa: F811
     """Without densification, after a warm-up every training view (other cameras, targets, random backgrounds,
     instance counts) replays the same recording and launches no kernel that is not compiled yet."""
-    import gc
-
     cfg = small_config(1000)
     cfg = dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, sh_increase_interval=10_000,
                                                              random_background=True),
                               densify=dataclasses.replace(cfg.densify, densify_from_iter=10_000,
                                                           densify_until_iter=10_000))
-    gc.collect()
-    gc.disable()
-    # (the flag is set first: JIT flags are part of a recording's key)
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    try:
+    with KernelLog() as log:      # (JIT flags are part of a recording's key: the history flag is on from the start)
         tr = _train(scene, cfg, 6)
         recordings = tr.train_step.recordings
         assert 1 <= recordings <= 3
-        dr.kernel_history()
+        log.cut()
         for _ in range(2 * len(tr.ds.train)):
             tr.advance()
         tr._resolve()
-        history = dr.kernel_history()
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, False)
-        gc.enable()
+        log.cut()
     assert tr.train_step.recordings == recordings
     assert tr.syncs < 2 * len(tr.ds.train) / 5
-    jit = [k for k in history if k["type"] == dr.KernelType.JIT]
-    assert len(jit) > 20
-    missed = [(k["size"], k["hash"]) for k in jit if not k["cache_hit"]]
-    assert not missed, f"{len(missed)} of {len(jit)} kernels compiled anew: {missed[:5]}"
+    assert len(log.windows[1]) > 20
+    unseen = log.unseen(1)
+    assert not unseen, f"{len(unseen)} of {len(log.windows[1])} kernels not launched in the warm-up: {unseen[:5]}"
