@@ -187,18 +187,21 @@ def test_random_background_recomposites_rgba_targets(scene, tmp_path):
     assert np.isfinite(metrics["mean"]["psnr"])
 
 
-@pytest.mark.parametrize("random_background", [False, True])
-def test_no_recompilation_when_the_training_view_changes(scene, tmp_path, random_background):
+@pytest.mark.parametrize("strategy, random_background", [("default", False), ("default", True), ("mcmc", True)])
+def test_no_recompilation_when_the_training_view_changes(scene, tmp_path, strategy, random_background):
     """After a warm-up, training iterations on other views (other cameras of the same size, other targets, other
-    background colours, other instance counts) launch only kernels that are already compiled: per-view values travel
-    as opaque arrays, never as kernel literals. Runs on any variant (``pytest --variant cuda_ad_rgb``)."""
+    background colours, other instance counts, other learning rates and, with MCMC, other noise steps) launch only
+    kernels that are already compiled: per-view and per-step values travel as opaque arrays, never as kernel literals.
+    Runs on any variant (``pytest --variant cuda_ad_rgb``)."""
     from kernel_log import KernelLog
     from mi_gaussians.optim.trainer import Trainer
 
     cfg = small_config(1000)
-    cfg = dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, sh_increase_interval=10_000,
-                                                             random_background=random_background),
-                              densify=dataclasses.replace(cfg.densify, densify_from_iter=10_000))
+    cfg = dataclasses.replace(cfg, strategy=strategy,
+                              optim=dataclasses.replace(cfg.optim, sh_increase_interval=10_000,
+                                                        random_background=random_background),
+                              densify=dataclasses.replace(cfg.densify, densify_from_iter=10_000),
+                              mcmc=dataclasses.replace(cfg.mcmc, refine_start_iter=10_000))
     tr = Trainer(load(scene, cfg), cfg, tmp_path / "run", progress=False)
     with KernelLog() as log:
         for step in range(1, 4):
