@@ -61,36 +61,36 @@ def scaled_views(name: str, run: Path, scale: float, work: Path):
     from mi_gaussians import run_folder
     from mi_gaussians.data.dataset import load_dataset
 
-    saved = run_folder.read_saved(run, "")
-    cfg = run_folder.saved_config(saved, run)
+    record = run_folder.RunRecord.read(run, "")
+    cfg = record.train
     d = cfg.data
     if name == "mi_objects_blender":
         if scale > 1:
             return None
-        ds = load_dataset(saved["dataset"], resolution=round(1 / scale), background=d.background,
+        ds = load_dataset(record.dataset, resolution=round(1 / scale), background=d.background,
                           test_every=d.test_every, random_points=0)
         return ds.test, ds.background, ds.color_space
 
-    from mi_gaussians.data.scene_dataset import _composite_background, _reference_view, load_scene_dataset
+    from mi_gaussians.data.scene_dataset import composite_background, load_scene_dataset, reference_view
     from mi_gaussians.data.scene_file import load_scene
-    from mi_gaussians.data.scene_references import _TEST_SEED_OFFSET, render_reference
+    from mi_gaussians.data.scene_references import reference_seed, render_reference
     from mi_gaussians.imwrite import write_exr
 
     scene_cfg = dataclasses.replace(cfg.scene, init="random", init_points=1)
-    ds = load_scene_dataset(saved["dataset"], scene_cfg, cache_root=run_folder.saved_cache(saved, run),
+    ds = load_scene_dataset(record.dataset, scene_cfg, cache_root=record.references_cache(run),
                             background=d.background, test_every=d.test_every, seed=d.seed, progress=False)
     if scale == 1:
         return ds.test, ds.background, ds.color_space
-    scene = load_scene(Path(saved["dataset"]), scene_cfg.defines)
+    scene = load_scene(Path(record.dataset), scene_cfg.defines)
     spp = int(json.loads((ds.references / "rig.json").read_text())["spp"])
-    _, bg_linear = _composite_background(d.background, scene_cfg.linear)
+    _, bg_linear = composite_background(d.background, scene_cfg.linear)
     views = []
     for i, v in enumerate(ds.test):
         cam = v.camera.scaled(round(v.camera.width * scale), round(v.camera.height * scale))
         path = work / f"x{scale:g}" / f"{cam.name}.exr"
         if not path.is_file():
-            write_exr(path, render_reference(scene, cam, spp, _TEST_SEED_OFFSET + i))
-        views.append(_reference_view(cam, path, bg_linear, scene_cfg.linear))
+            write_exr(path, render_reference(scene, cam, spp, reference_seed("test", i)))
+        views.append(reference_view(cam, path, bg_linear, scene_cfg.linear))
     return views, np.asarray(d.background, np.float32), ds.color_space
 
 
@@ -119,7 +119,7 @@ def main() -> int:
             if got is None:
                 continue
             views, bg, color_space = got
-            cfg = run_folder.saved_config(run_folder.read_saved(run, ""), run)
+            cfg = run_folder.RunRecord.read(run, "").train
             g = Gaussians.load_ply(run / run_folder.MODEL)
             scores, _ = evaluate_views(g, views, tuple(bg), cfg=cfg.raster, with_lpips=False,
                                        color_space=color_space)

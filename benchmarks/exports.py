@@ -29,13 +29,13 @@ def main(argv=None) -> int:
 
     mi.set_variant("llvm_ad_rgb")
     from mi_gaussians import run_folder
-    from mi_gaussians.cli import _eval_dataset
+    from mi_gaussians.runs import run_dataset
     from mi_gaussians.evaluate import display, evaluate_views, summarize
     from mi_gaussians.model.gaussians import Gaussians
 
-    saved = run_folder.read_saved(run, "missing")
-    cfg = run_folder.saved_config(saved, run)
-    ds = _eval_dataset(saved, cfg, run, None)
+    record = run_folder.RunRecord.read(run, "missing")
+    cfg = record.train
+    ds = run_dataset(record, run)
     views = ds.test or ds.train
     ply = run / run_folder.MODEL
     work = Path(tempfile.mkdtemp())

@@ -20,15 +20,14 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def run_one(scene: str, init: str, iterations: int, out_root: Path, init_points: int | None = None) -> dict:
-    from mi_gaussians.config import DensifyConfig, OptimConfig, SceneConfig, TrainConfig
+    from mi_gaussians.config import SceneConfig, TrainConfig
     from mi_gaussians.data.scene_dataset import load_scene_dataset
     from mi_gaussians.optim.trainer import Trainer
 
     path = ROOT / "scenes" / f"{scene}.xml"
     scfg = dataclasses.replace(SceneConfig(), init=init, init_points=init_points or SceneConfig().init_points)
-    cfg = TrainConfig(optim=OptimConfig(iterations=iterations, position_lr_max_steps=iterations),
-                      densify=DensifyConfig(densify_until_iter=min(15_000, iterations // 2)), scene=scfg,
-                      checkpoint_every=iterations, eval_every=max(500, iterations // 6), save_iterations=())
+    cfg = dataclasses.replace(TrainConfig(scene=scfg, checkpoint_every=iterations, eval_every=max(500, iterations // 6),
+                                          save_iterations=()).with_iterations(iterations))
     refs = out_root / scene / "references"
     # render (or reuse) the references first, so that the init timing below is the init alone
     load_scene_dataset(path, dataclasses.replace(scfg, init="random", init_points=1), cache_root=refs,

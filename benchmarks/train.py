@@ -12,6 +12,7 @@ Datasets are read from ../shared/data (next to the repository). Outputs go to --
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -39,7 +40,7 @@ def run_one(name: str, milestones: list[int], out_root: Path, variant: str, sche
 
     mi.set_variant(variant)
     import mi_gaussians as mig
-    from mi_gaussians.config import DataConfig, DensifyConfig, OptimConfig, TrainConfig
+    from mi_gaussians.config import DataConfig, TrainConfig
     from mi_gaussians.evaluate import evaluate_views, summarize
     from mi_gaussians.optim.trainer import Trainer
 
@@ -51,10 +52,10 @@ def run_one(name: str, milestones: list[int], out_root: Path, variant: str, sche
     iters = max(milestones)
     # the learning-rate decay and densification of a `schedule`-iteration run, stopped at the last milestone
     schedule = max(schedule or iters, iters)
-    cfg = TrainConfig(data=DataConfig(resolution=res, background=bg),
-                      optim=OptimConfig(iterations=iters, position_lr_max_steps=schedule),
-                      densify=DensifyConfig(densify_until_iter=min(15_000, schedule // 2)),
-                      checkpoint_every=1000, eval_every=1000, save_iterations=tuple(milestones))
+    base = TrainConfig(data=DataConfig(resolution=res, background=bg), checkpoint_every=1000, eval_every=1000,
+                       save_iterations=tuple(milestones)).with_iterations(schedule)
+    cfg = dataclasses.replace(base, optim=dataclasses.replace(base.optim, iterations=iters),
+                              save_iterations=tuple(milestones))
     ds = mig.load_dataset(path, resolution=res, background=bg)
     out = out_root / (name if schedule == iters else f"{name}_of_{schedule}")
     tr = Trainer(ds, cfg, out, progress=True)

@@ -1,12 +1,29 @@
-"""Every default of mi-gaussians, in frozen dataclasses (the only home of defaults: the command line reads them).
+"""Every default of mi-gaussians, in frozen dataclasses, and the values each setting may take: the only home of both
+(the command line, ``config.json`` and the library read them here).
 
-Values follow the 3DGS paper and its reference implementation (see ``conventions.md``); where we differ on purpose,
-the field's comment says so.
+Values follow the 3DGS paper and its reference implementation (``docs/conventions.md``); where we differ on purpose,
+the field's comment says so. :data:`RULES` gives each setting's range or choices (every other number must be >= 0);
+:meth:`TrainConfig.validate` applies them, :meth:`TrainConfig.check` adds the rules that relate settings to each
+other and to the input, :meth:`TrainConfig.from_dict` reads a saved record (types checked, JSON values only) and
+:meth:`TrainConfig.with_settings` applies ``--set SECTION.FIELD=VALUE`` texts.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+
+#: The densification strategies ``TrainConfig.strategy`` may name, each with the section of :class:`TrainConfig` it
+#: reads (``mi_gaussians.optim.strategies`` gives each its class; a test checks that both list the same names).
+STRATEGIES = {"default": "densify", "mcmc": "mcmc"}
+#: ``DataConfig.random_init``: where the initial random points of layouts without SfM points lie.
+RANDOM_INITS = ("cube", "frustum")
+#: ``SceneConfig.rig``: the cameras of a Mitsuba scene.
+RIGS = ("auto", "sensors", "hemisphere", "sphere")
+#: ``SceneConfig.init``: the initial points of a Mitsuba scene.
+SCENE_INITS = ("shapes", "random", "sfm")
+#: ``--depth-weight W`` decays from W to W / DEPTH_WEIGHT_DECAY (the 2024 reference's 1.0 to 0.01).
+DEPTH_WEIGHT_DECAY = 100.0
 
 
 @dataclass(frozen=True)
@@ -16,7 +33,7 @@ class DataConfig:
     test_every: int = 8                      # COLMAP / single-transforms layouts: index % test_every == 0 is test (0: no test split)
     random_points: int = 100_000             # initial points for layouts without SfM points
     random_init: str = "cube"                # ... sampled in the reference's cube, or 'frustum': where the training
-                                             # cameras look (data/pointcloud.py)
+                                             # cameras look (RANDOM_INITS; data/pointcloud.py)
     masks: bool = True                       # COLMAP layout: composite each image over the background through its
                                              # mask in masks/ (white = object) when that folder exists
     seed: int = 0
@@ -70,12 +87,16 @@ class OptimConfig:
     random_background: bool = False          # a random background colour per iteration
     depth_weight: float = 0.0                # Mitsuba scenes: weight of the inverse-depth L1 against exact depth
     depth_weight_final: float = 0.0          # ... decaying exponentially to this over position_lr_max_steps (--depth-weight W:
-                                             # W to W / 100, the 2024 reference's 1.0 to 0.01)
+                                             # W to W / DEPTH_WEIGHT_DECAY, the 2024 reference's 1.0 to 0.01)
+
+    def with_depth_weight(self, weight: float) -> "OptimConfig":
+        """Depth supervision of weight ``weight`` decaying to ``weight / DEPTH_WEIGHT_DECAY`` (``--depth-weight``)."""
+        return dataclasses.replace(self, depth_weight=weight, depth_weight_final=weight / DEPTH_WEIGHT_DECAY)
 
 
 @dataclass(frozen=True)
 class DensifyConfig:
-    """Adaptive density control (reference behaviour; see conventions.md)."""
+    """Adaptive density control (reference behaviour; docs/conventions.md)."""
 
     densify_from_iter: int = 500
     densify_until_iter: int = 15_000
@@ -122,7 +143,8 @@ class SceneConfig:
                                              # 'hemisphere'), 'sensors', 'hemisphere' or 'sphere'
     views: int = 64                          # generated training cameras
     test_views: int = 8                      # generated held-out cameras (declared sensors: every test_every-th)
-    resolution: tuple[int, int] | None = None   # film size (width, height); fallback 256 x 256
+    resolution: tuple[int, ...] | None = None   # film size (width[, height]: a width alone keeps the sensor's
+                                             # aspect); fallback 256 x 256
     fov: float | None = None                 # horizontal field of view in degrees; fallback 40
     radius: float | None = None              # rig radius; None: the bounding sphere fills the view
     up: tuple[float, float, float] | None = None  # world up; None: the sensor's up snapped to an axis, else +Y
@@ -143,7 +165,7 @@ class TrainConfig:
     densify: DensifyConfig = DensifyConfig()
     raster: RasterConfig = RasterConfig()
     scene: SceneConfig = SceneConfig()       # used only when the input is a Mitsuba scene file
-    strategy: str = "default"                # densification: 'default' (the paper's, ``densify``) or 'mcmc' (``mcmc``)
+    strategy: str = "default"                # densification: a name of STRATEGIES ('default': the paper's, 'mcmc')
     mcmc: MCMCConfig = MCMCConfig()
     seed: int = 0
     checkpoint_every: int = 1000             # iterations between checkpoints (and the last iteration)
@@ -153,8 +175,6 @@ class TrainConfig:
                                              # per iteration); false: trace every iteration (same results, slower)
 
     def to_dict(self) -> dict:
-        import dataclasses
-
         return dataclasses.asdict(self)
 
     # Fields that existed in earlier versions and were removed because they had no effect; a saved config.json that
@@ -163,36 +183,19 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
-        import dataclasses
-
-        def build(kind, values):
-            names = {f.name: f for f in dataclasses.fields(kind)}
-            values = {k: v for k, v in values.items() if k not in cls.RETIRED.get(kind.__name__, ())}
-            unknown = set(values) - set(names)
-            if unknown:
-                raise ValueError(f"unknown {kind.__name__} setting(s): {', '.join(sorted(unknown))}")
-            kw = {}
-            for k, v in values.items():
-                default = getattr(kind(), k)
-                if dataclasses.is_dataclass(default):
-                    kw[k] = build(type(default), v)
-                elif isinstance(default, tuple) or isinstance(v, list):   # (JSON gives lists)
-                    kw[k] = None if v is None else tuple(v)
-                else:
-                    kw[k] = v
-            return kind(**kw)
-
-        return build(cls, d)
+        """The configuration a run saved (``config.json``'s ``"train"``, JSON values): every field's type and range
+        checked (:class:`SettingError` naming the key, e.g. ``optim.iterations``); missing fields take their
+        defaults, unknown ones are refused."""
+        return _from_json(cls, d, "").validate()
 
     def with_settings(self, assignments) -> "TrainConfig":
         """A copy with ``"section.field=value"`` (or ``"field=value"`` for top-level fields) assignments applied,
-        each value parsed as its field's type: ``--set densify.min_opacity=0.1 --set data.background=1,1,1``.
-        Raises ValueError with a one-line message for an unknown name or a value of the wrong type."""
-        import dataclasses
-
+        each value parsed as its field's type and checked against :data:`RULES`: ``--set densify.min_opacity=0.1
+        --set data.background=1,1,1``. Raises :class:`SettingError` (a ValueError) with a one-line message for an
+        unknown name, a value of the wrong type or out of range."""
         import typing
 
-        sections = [f.name for f in dataclasses.fields(self) if dataclasses.is_dataclass(getattr(self, f.name))]
+        sections = _sections(self)
         cfg = self
         for text in assignments:
             key, sep, value = str(text).partition("=")
@@ -201,22 +204,223 @@ class TrainConfig:
                 raise ValueError(f"setting {text!r}: expected NAME=VALUE, e.g. densify.min_opacity=0.1")
             path = key.split(".")
             if len(path) > 2:
-                raise ValueError(f"setting {key!r}: expected SECTION.FIELD or FIELD")
+                raise SettingError(key, "expected SECTION.FIELD or FIELD")
             if len(path) == 2 and path[0] not in sections:
-                raise ValueError(f"setting {key!r}: no section {path[0]!r} (sections: {', '.join(sections)})")
+                raise SettingError(key, f"no section {path[0]!r} (sections: {', '.join(sections)})")
             if len(path) == 1 and key in sections:
-                raise ValueError(f"setting {key!r}: {key} is a section, set one of its fields ({key}.FIELD=VALUE)")
+                raise SettingError(key, f"{key} is a section, set one of its fields ({key}.FIELD=VALUE)")
             owner, name = (cfg, key) if len(path) == 1 else (getattr(cfg, path[0]), path[1])
             fields = [f.name for f in dataclasses.fields(owner) if f.name not in sections]
             if name not in fields:
-                raise ValueError(f"setting {key!r}: no such field (fields{' of ' + path[0] if len(path) == 2 else ''}:"
-                                 f" {', '.join(fields)})")
+                raise SettingError(key, f"no such field (fields{' of ' + path[0] if len(path) == 2 else ''}: "
+                                        f"{', '.join(fields)})")
             parsed = _parse_value(typing.get_type_hints(type(owner))[name], value.strip(), key)
-            if isinstance(parsed, (int, float)) and not isinstance(parsed, bool) and parsed < 0:
-                raise ValueError(f"setting {key!r}: must not be negative, got {parsed}")
+            _check_value(key, parsed)
             owner = dataclasses.replace(owner, **{name: parsed})
             cfg = owner if len(path) == 1 else dataclasses.replace(cfg, **{path[0]: owner})
         return cfg
+
+    def with_iterations(self, n: int) -> "TrainConfig":
+        """A run of ``n`` iterations with the paper's proportions: the position schedule spans the run, a shorter
+        run densifies until half of it (15k of 30k) and refines MCMC until 5/6 of it (25k of 30k), and models are
+        saved only at iterations before its end."""
+        shorter = n < OptimConfig().iterations
+        return dataclasses.replace(
+            self, optim=dataclasses.replace(self.optim, iterations=n, position_lr_max_steps=n),
+            densify=dataclasses.replace(self.densify, densify_until_iter=min(self.densify.densify_until_iter, n // 2))
+            if shorter else self.densify,
+            mcmc=dataclasses.replace(self.mcmc, refine_stop_iter=min(self.mcmc.refine_stop_iter, n * 5 // 6))
+            if shorter else self.mcmc,
+            save_iterations=tuple(i for i in self.save_iterations if i < n))
+
+    def validate(self) -> "TrainConfig":
+        """``self`` when every setting lies in its range (:data:`RULES`; other numbers >= 0), else
+        :class:`SettingError` naming the first that does not."""
+        for key, value in setting_items(self):
+            _check_value(key, value)
+        return self
+
+    def check(self, scene_file: bool, given=()) -> "TrainConfig":
+        """:meth:`validate`, and the rules between settings and the input, for a new run: depth supervision needs
+        the exact depth of a Mitsuba scene (``scene_file``) and a final weight; ``given`` (the keys the user set)
+        must not hold a setting of a strategy the run does not use (it would be silently ignored)."""
+        self.validate()
+        if self.optim.depth_weight > 0 and not scene_file:
+            raise SettingError("optim.depth_weight", "needs the exact depth of a Mitsuba scene: give a scene .xml")
+        if self.optim.depth_weight > 0 and not self.optim.depth_weight_final > 0:
+            raise SettingError("optim.depth_weight_final", "must be > 0 with optim.depth_weight (the weight decays "
+                                                           "exponentially to it; --depth-weight W sets W and "
+                                                           f"W/{DEPTH_WEIGHT_DECAY:g})")
+        own = STRATEGIES[self.strategy]
+        for key in given:
+            section = key.partition(".")[0]
+            if section in STRATEGIES.values() and section != own:
+                other = next(name for name, s in STRATEGIES.items() if s == section)
+                raise SettingError(key, f"the {section} section configures --strategy {other}, not the "
+                                        f"{self.strategy} strategy of this run")
+        return self
+
+
+class SettingError(ValueError):
+    """A setting with a wrong name, type or value: ``key`` is its ``section.field`` name."""
+
+    def __init__(self, key: str, problem: str):
+        self.key, self.problem = key, problem
+        super().__init__(f"setting {key!r}: {problem}")
+
+
+# ------------------------------------------------------------------------------------------------------ the rules
+@dataclass(frozen=True)
+class Range:
+    """Numbers (or each number of a tuple) in [low, high]; ``open_low`` / ``open_high`` exclude an end; ``counts``:
+    how many numbers a tuple may hold (at least, at most)."""
+
+    low: float | None = None
+    high: float | None = None
+    open_low: bool = False
+    open_high: bool = False
+    counts: tuple[int, int] | None = None
+
+    def allows(self, v: float) -> bool:
+        return ((self.low is None or (v > self.low if self.open_low else v >= self.low))
+                and (self.high is None or (v < self.high if self.open_high else v <= self.high)))
+
+    def __str__(self) -> str:
+        lo = None if self.low is None else f"{'>' if self.open_low else '>='} {self.low:g}"
+        hi = None if self.high is None else f"{'<' if self.open_high else '<='} {self.high:g}"
+        return "must be " + " and ".join(t for t in (lo, hi) if t)
+
+
+_COUNT = Range(1)                               # iterations, intervals, counts
+_POSITIVE = Range(0, open_low=True)
+_FRACTION = Range(0, 1)
+_OPEN_FRACTION = Range(0, 1, open_low=True, open_high=True)
+
+#: What each setting may be, by ``section.field`` (a Range, or a tuple of the names it may take). A number not
+#: listed must be >= 0; tuples not listed are free (an up vector may point down).
+RULES: dict[str, "Range | tuple[str, ...]"] = {
+    "strategy": tuple(STRATEGIES), "checkpoint_every": _COUNT,
+    "data.resolution": _COUNT, "data.random_points": _COUNT, "data.random_init": RANDOM_INITS,
+    "data.background": Range(0),
+    "optim.iterations": _COUNT, "optim.position_lr_max_steps": _COUNT, "optim.sh_degree": Range(0, 3),
+    "optim.sh_increase_interval": _COUNT, "optim.lambda_dssim": _FRACTION, "optim.adam_eps": _POSITIVE,
+    "densify.densification_interval": _COUNT, "densify.opacity_reset_interval": _COUNT, "densify.split_count": _COUNT,
+    "densify.split_scale_divisor": _POSITIVE, "densify.min_opacity": Range(0, 1, open_high=True),
+    "densify.reset_opacity": _OPEN_FRACTION,
+    "raster.near_plane": _POSITIVE, "raster.guard_band": _POSITIVE, "raster.alpha_min": Range(0, 1, open_high=True),
+    "raster.alpha_max": Range(0, 1, open_low=True), "raster.transmittance_min": Range(0, 1, open_high=True),
+    "mcmc.cap_max": _COUNT, "mcmc.refine_every": _COUNT, "mcmc.min_opacity": Range(0, 1, open_high=True),
+    "mcmc.init_opacity": _OPEN_FRACTION, "mcmc.init_scale": _POSITIVE,
+    "scene.rig": RIGS, "scene.views": _COUNT, "scene.resolution": Range(16, counts=(1, 2)),
+    "scene.fov": Range(0, 180, open_low=True, open_high=True),
+    "scene.radius": _POSITIVE, "scene.elevation": Range(-90, 90), "scene.spp": _COUNT, "scene.init": SCENE_INITS,
+    "scene.init_points": _COUNT,
+}
+
+
+def check_section(section: str, values) -> None:
+    """:class:`SettingError` for the first field of one section (e.g. ``"mcmc"``, an :class:`MCMCConfig`) outside
+    its rule: for code that takes a section alone (a strategy)."""
+    for key, value in setting_items(values, section + "."):
+        _check_value(key, value)
+
+
+def _check_value(key: str, value) -> None:
+    rule = RULES.get(key)
+    if isinstance(rule, tuple):
+        if value not in rule:
+            raise SettingError(key, f"{value!r} is not one of {', '.join(rule)}")
+        return
+    items = value if isinstance(value, tuple) else (value,)
+    if isinstance(value, tuple) and rule is None:
+        return
+    if isinstance(value, tuple) and rule.counts and not rule.counts[0] <= len(value) <= rule.counts[1]:
+        raise SettingError(key, f"expected {rule.counts[0]} to {rule.counts[1]} values, got {len(value)}")
+    for v in items:
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and not (rule or Range(0)).allows(v):
+            if rule is None:
+                raise SettingError(key, f"must not be negative, got {v}")
+            raise SettingError(key, f"{rule}, got {v}")
+
+
+def _sections(cfg) -> list[str]:
+    return [f.name for f in dataclasses.fields(cfg) if dataclasses.is_dataclass(getattr(cfg, f.name))]
+
+
+def setting_items(cfg, prefix: str = ""):
+    """(``section.field``, value) for every setting of ``cfg`` (a TrainConfig, or a section with ``prefix``)."""
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(value):
+            yield from setting_items(value, f"{prefix}{f.name}.")
+        else:
+            yield prefix + f.name, value
+
+
+# ------------------------------------------------------------------------------------------- reading values
+def _from_json(kind, values, prefix: str):
+    """An instance of the dataclass ``kind`` from JSON ``values`` (types checked, defaults for missing fields)."""
+    import typing
+
+    section = prefix.rstrip(".") or "the training settings"
+    if not isinstance(values, dict):
+        raise SettingError(section, f"expected an object of settings, got {_shown(values)}")
+    names = {f.name: f for f in dataclasses.fields(kind)}
+    hints = typing.get_type_hints(kind)
+    retired = TrainConfig.RETIRED.get(kind.__name__, ())
+    kw = {}
+    for k, v in values.items():
+        if k in retired:
+            continue
+        if k not in names:
+            raise SettingError(prefix + str(k), f"unknown setting (known in {section}: {', '.join(names)})")
+        default = names[k].default
+        if dataclasses.is_dataclass(default):
+            kw[k] = _from_json(type(default), v, f"{prefix}{k}.")
+        else:
+            kw[k] = _json_value(hints[k], v, prefix + k)
+    return kind(**kw)
+
+
+def _json_value(kind, v, key: str):
+    """A JSON value ``v`` as the type ``kind`` (bool, int, float, str, tuples of those, optionally ``| None``)."""
+    import math
+    import types
+    import typing
+
+    args = typing.get_args(kind)
+    if isinstance(kind, types.UnionType) or typing.get_origin(kind) is typing.Union:
+        if v is None and type(None) in args:
+            return None
+        (kind,) = [a for a in args if a is not type(None)]
+        args = typing.get_args(kind)
+    if typing.get_origin(kind) is tuple:
+        if not isinstance(v, (list, tuple)):
+            raise SettingError(key, f"expected a list, got {_shown(v)}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_json_value(args[0], x, key) for x in v)
+        if len(v) != len(args):
+            raise SettingError(key, f"expected a list of {len(args)} values, got {_shown(v)}")
+        return tuple(_json_value(a, x, key) for a, x in zip(args, v))
+    if kind is bool and isinstance(v, bool):
+        return v
+    if kind is int and isinstance(v, int) and not isinstance(v, bool):
+        return v
+    if kind is float and isinstance(v, (int, float)) and not isinstance(v, bool):
+        if not math.isfinite(v):
+            raise SettingError(key, f"expected a finite number, got {v}")
+        return float(v)
+    if kind is str and isinstance(v, str):
+        return v
+    what = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(kind, str(kind))
+    raise SettingError(key, f"expected {what}, got {_shown(v)}")
+
+
+def _shown(v) -> str:
+    import json
+
+    text = json.dumps(v) if isinstance(v, (dict, list, str, int, float, bool, type(None))) else repr(v)
+    return text if len(text) <= 40 else text[:37] + "..."
 
 
 def _parse_value(kind, text: str, key: str):
@@ -235,7 +439,7 @@ def _parse_value(kind, text: str, key: str):
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_parse_value(args[0], t, key) for t in items)
         if len(items) != len(args):
-            raise ValueError(f"setting {key!r}: expected {len(args)} comma-separated values, got {text!r}")
+            raise SettingError(key, f"expected {len(args)} comma-separated values, got {text!r}")
         return tuple(_parse_value(a, t, key) for a, t in zip(args, items))
     try:
         if kind is bool:
@@ -253,5 +457,5 @@ def _parse_value(kind, text: str, key: str):
         if kind is str:
             return text
     except ValueError:
-        raise ValueError(f"setting {key!r}: {text!r} is not a valid {kind.__name__}") from None
-    raise ValueError(f"setting {key!r}: values of type {kind} cannot be set from the command line")
+        raise SettingError(key, f"{text!r} is not a valid {kind.__name__}") from None
+    raise SettingError(key, f"values of type {kind} cannot be set from the command line")

@@ -45,6 +45,7 @@ Measured (llvm_ad_rgb, 2-core AVX-512 CPU, 800 x 800 x 3): the training loss (``
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
@@ -57,8 +58,22 @@ _TILE_SHIFT = 4
 _TILE = 1 << _TILE_SHIFT   # width of a column tile of the tiled layout (16 floats: a 64-byte cache line)
 
 
+
+@dataclass(frozen=True)
+class SSIMParams:
+    """The constants of SSIM: the Gaussian window's taps and sigma, and C1, C2. The defaults are the 3DGS reference's
+    (:data:`REFERENCE_SSIM`), which the training loss and the metric use."""
+    window: int = 11
+    sigma: float = 1.5
+    c1: float = 0.01 ** 2
+    c2: float = 0.03 ** 2
+
+
+REFERENCE_SSIM = SSIMParams()
+
+
 # ---------------------------------------------------------------------------------------------------------- helpers
-def gaussian_window(window: int = 11, sigma: float = 1.5) -> list[float]:
+def gaussian_window(window: int = REFERENCE_SSIM.window, sigma: float = REFERENCE_SSIM.sigma) -> list[float]:
     """The reference's normalized 1D Gaussian: ``exp(-(k - window//2)^2 / (2 sigma^2))`` over k, divided by its sum."""
     if isinstance(window, bool) or not isinstance(window, int) or window < 1 or window % 2 != 1:
         raise ValueError(f"the SSIM window must be a positive odd number of pixels, got {window!r}")
@@ -436,15 +451,16 @@ class _SSIMMapOp(_TwoImageOp):
 
 
 # ------------------------------------------------------------------------------------------------------- public API
-def weighted_l1_ssim(img: "mi.TensorXf", ref: "mi.TensorXf", a: float, b: float, c: float, window: int = 11,
-                     sigma: float = 1.5, c1: float = 0.01 ** 2, c2: float = 0.03 ** 2) -> "mi.Float":
-    """``c + a * L1 + b * SSIM`` -> Float (1,) (Python floats; ``a`` may be 0), through the fused kernels: the L1 term
-    rides in the SSIM walks (its sum in the first forward walk, its ``sign(img - ref)`` derivative in the last
-    backward walk), so value and gradient equal those of ``c + a * l1(img, ref) + b * ssim(img, ref)`` at the cost of
-    SSIM alone. Differentiable with respect to ``img`` and/or ``ref``."""
+def weighted_l1_ssim(img: "mi.TensorXf", ref: "mi.TensorXf", l1_weight: float, ssim_weight: float,
+                     offset: float = 0.0, params: SSIMParams = REFERENCE_SSIM) -> "mi.Float":
+    """``offset + l1_weight * L1 + ssim_weight * SSIM`` -> Float (1,) (Python floats; ``l1_weight`` may be 0),
+    through the fused kernels: the L1 term rides in the SSIM walks (its sum in the first forward walk, its
+    ``sign(img - ref)`` derivative in the last backward walk), so value and gradient equal those of
+    ``offset + l1_weight * l1(img, ref) + ssim_weight * ssim(img, ref)`` at the cost of SSIM alone. Differentiable
+    with respect to ``img`` and/or ``ref``."""
     x, y, shape = _pair(img, ref)
-    weights = gaussian_window(window, sigma)
-    c1, c2 = float(c1), float(c2)
+    weights, c1, c2 = gaussian_window(params.window, params.sigma), float(params.c1), float(params.c2)
+    a, b, c = float(l1_weight), float(ssim_weight), float(offset)
     need_img, need_ref = dr.grad_enabled(x), dr.grad_enabled(y)
     if need_img or need_ref:
         return dr.custom(_LossOp, x, y, shape, weights, c1, c2, a, b, c, need_img, need_ref)
@@ -453,28 +469,23 @@ def weighted_l1_ssim(img: "mi.TensorXf", ref: "mi.TensorXf", a: float, b: float,
 
 
 def l1(img: "mi.TensorXf", ref: "mi.TensorXf") -> "mi.Float":
-    """Mean absolute difference over every pixel and channel (img, ref: (H, W, C)) -> Float (1,).
-
-    The derivative is sign(img - ref) / N with sign(0) = 0 (as torch's ``abs``); Dr.Jit's own ``abs`` would give 1."""
+    """Mean absolute difference over every pixel and channel (img, ref: (H, W, C)) -> Float (1,). The derivative is
+    sign(img - ref) / N with sign(0) = 0 (as torch's ``abs``); Dr.Jit's own ``abs`` would give 1."""
     x, y, _ = _pair(img, ref)
     d = x - y
     return dr.mean(d * dr.detach(_sign(d)))
 
 
-def ssim(img: "mi.TensorXf", ref: "mi.TensorXf", window: int = 11, sigma: float = 1.5, c1: float = 0.01 ** 2,
-         c2: float = 0.03 ** 2) -> "mi.Float":
-    """Mean SSIM of (H, W, C) images (the reference 3DGS ``ssim``: Gaussian window, zero padding) -> Float (1,).
-
-    Differentiable with respect to ``img`` and/or ``ref`` (whichever has gradients enabled)."""
-    return weighted_l1_ssim(img, ref, 0.0, 1.0, 0.0, window, sigma, c1, c2)
+def ssim(img: "mi.TensorXf", ref: "mi.TensorXf", params: SSIMParams = REFERENCE_SSIM) -> "mi.Float":
+    """Mean SSIM of (H, W, C) images (the reference 3DGS ``ssim``: Gaussian window, zero padding) -> Float (1,),
+    differentiable with respect to ``img`` and/or ``ref`` (whichever has gradients enabled)."""
+    return weighted_l1_ssim(img, ref, l1_weight=0.0, ssim_weight=1.0, params=params)
 
 
-def ssim_map(img: "mi.TensorXf", ref: "mi.TensorXf", window: int = 11, sigma: float = 1.5, c1: float = 0.01 ** 2,
-             c2: float = 0.03 ** 2) -> "mi.TensorXf":
+def ssim_map(img: "mi.TensorXf", ref: "mi.TensorXf", params: SSIMParams = REFERENCE_SSIM) -> "mi.TensorXf":
     """The per-pixel, per-channel SSIM map (same shape as ``img``) whose mean is :func:`ssim` (differentiable)."""
     x, y, shape = _pair(img, ref)
-    weights = gaussian_window(window, sigma)
-    c1, c2 = float(c1), float(c2)
+    weights, c1, c2 = gaussian_window(params.window, params.sigma), float(params.c1), float(params.c2)
     need_img, need_ref = dr.grad_enabled(x), dr.grad_enabled(y)
     if need_img or need_ref:
         m = dr.custom(_SSIMMapOp, x, y, shape, weights, c1, c2, need_img, need_ref)
@@ -483,7 +494,6 @@ def ssim_map(img: "mi.TensorXf", ref: "mi.TensorXf", window: int = 11, sigma: fl
     return type(img)(m, tuple(img.shape))
 
 
-def d_ssim(img: "mi.TensorXf", ref: "mi.TensorXf", window: int = 11, sigma: float = 1.5, c1: float = 0.01 ** 2,
-           c2: float = 0.03 ** 2) -> "mi.Float":
+def d_ssim(img: "mi.TensorXf", ref: "mi.TensorXf", params: SSIMParams = REFERENCE_SSIM) -> "mi.Float":
     """1 - SSIM (the structural term of the 3DGS loss) -> Float (1,)."""
-    return weighted_l1_ssim(img, ref, 0.0, -1.0, 1.0, window, sigma, c1, c2)
+    return weighted_l1_ssim(img, ref, l1_weight=0.0, ssim_weight=-1.0, offset=1.0, params=params)

@@ -22,7 +22,7 @@ import os
 import numpy as np
 
 from .drjit_utils import owned_tensor
-from .image_ops import gaussian_window, ssim
+from .image_ops import REFERENCE_SSIM, SSIMParams, gaussian_window, ssim
 
 # torchvision's ImageNet VGG16 weights (the file torch.hub caches for ``vgg16(weights=IMAGENET1K_V1)``)
 VGG16_WEIGHTS_FILE = "vgg16-397923af.pth"
@@ -57,12 +57,12 @@ def _jit_variant() -> bool:
     return v is not None and (v.startswith("llvm_") or v.startswith("cuda_"))
 
 
-def _ssim_numpy(a: np.ndarray, b: np.ndarray, window: int = 11, sigma: float = 1.5, c1: float = 0.01 ** 2,
-                c2: float = 0.03 ** 2) -> float:
-    """The reference SSIM in float64 with SciPy (zero padding, separable Gaussian window)."""
+def ssim_float64(a: np.ndarray, b: np.ndarray, params: SSIMParams = REFERENCE_SSIM) -> float:
+    """The reference SSIM in float64 with SciPy (zero padding, separable Gaussian window), for (H, W, C) arrays."""
     from scipy.ndimage import correlate1d
 
-    g = np.asarray(gaussian_window(window, sigma))
+    g = np.asarray(gaussian_window(params.window, params.sigma))
+    c1, c2 = params.c1, params.c2
 
     def blur(v):
         return correlate1d(correlate1d(v, g, axis=0, mode="constant"), g, axis=1, mode="constant")
@@ -82,7 +82,7 @@ def ssim_np(img, ref, clamp: bool = True) -> float:
     if a.ndim == 2:
         a, b = a[..., None], b[..., None]
     if not _jit_variant():
-        return _ssim_numpy(a, b)
+        return ssim_float64(a, b)
     return float(ssim(owned_tensor(a), owned_tensor(b))[0])
 
 

@@ -12,7 +12,10 @@ import contextlib
 import os
 import re
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
+
+from .config import SettingError, TrainConfig
 
 CONFIG = "config.json"
 CHECKPOINTS = "checkpoints"
@@ -34,6 +37,11 @@ LOCK = ".mi-gs.lock"
 # process was killed while writing; looked for only in the folders a run writes
 _TEMPORARY = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?$")
 _WRITTEN_FOLDERS = ("", CHECKPOINTS, RENDERS, COMPARE)
+
+
+def is_temporary_file(name: str) -> bool:
+    """Whether ``name`` is that of an interrupted atomic write's temporary file (``io_utils.atomic_path``)."""
+    return _TEMPORARY.match(name) is not None
 
 
 def saved_model(step: int) -> str:
@@ -114,7 +122,7 @@ def remove_temporary_files(out: Path) -> list[Path]:
         if not folder.is_dir():
             continue
         for p in folder.iterdir():
-            if _TEMPORARY.match(p.name) and p.is_file():
+            if is_temporary_file(p.name) and p.is_file():
                 with contextlib.suppress(FileNotFoundError):
                     p.unlink()
                     removed.append(p)
@@ -146,47 +154,70 @@ def clear_run(out: Path) -> None:
         p.unlink()
 
 
-def read_saved(out: Path, why: str) -> dict:
-    """The record ``config.json`` of the run in ``out``; ``why`` completes the error when it is missing. A record
-    without its dataset or its training settings is refused (ValueError naming the file)."""
-    from .io_utils import read_json_object
+@dataclass(frozen=True)
+class RunRecord:
+    """A run's record, ``config.json``: what it was trained on and with which settings. Written by the trainer when
+    a run starts (and again when it resumes), read by ``--resume``, ``eval``, ``render`` and ``view``."""
 
-    path = out / CONFIG
-    if not path.exists():
-        raise ValueError(f"{path}: {why}")
-    saved = read_json_object(path, "run record", "a JSON object (an mi-gs run record)")
-    if not isinstance(saved.get("train"), dict):
-        raise ValueError(f"{path}: the run record has no training settings (\"train\"); it was not written by "
-                         "mi-gs optimize or was edited")
-    if not isinstance(saved.get("dataset"), str):
-        raise ValueError(f"{path}: the run record does not name its dataset (\"dataset\")")
-    return saved
+    dataset: str                            # the dataset folder or scene file it trains on (absolute)
+    train: TrainConfig                      # its settings
+    dataset_fingerprint: str | None = None  # the content of a dataset folder (``data.dataset.fingerprint``)
+    references: str | None = None           # the folder of a scene file's path-traced references (absolute)
 
+    def to_dict(self) -> dict:
+        d = {"dataset": self.dataset}
+        d.update({k: v for k, v in (("dataset_fingerprint", self.dataset_fingerprint),
+                                    ("references", self.references)) if v is not None})
+        return {**d, "train": self.train.to_dict()}
 
-def saved_config(saved: dict, out: Path):
-    """The TrainConfig of a run record (ValueError naming ``config.json`` when its settings are not valid)."""
-    from .config import TrainConfig
+    def write(self, out: Path) -> None:
+        import json
 
-    try:
-        return TrainConfig.from_dict(saved["train"])
-    except (TypeError, ValueError, AttributeError) as e:     # (AttributeError: a section that is not an object)
-        raise ValueError(f"{out / CONFIG}: invalid training settings ({e})") from None
+        from .io_utils import atomic_write_text
 
+        atomic_write_text(Path(out) / CONFIG, json.dumps(self.to_dict(), indent=2) + "\n")
 
-def saved_cache(saved: dict | None, out: Path) -> str | None:
-    """The cache folder of a run's references: OUTDIR/references when they are there (the folder may have moved),
-    else the folder the run recorded; None for a run without references."""
-    refs = (saved or {}).get("references")
-    if not refs:
-        return None
-    key = Path(refs).name
-    return str(out / REFERENCES) if (out / REFERENCES / key).is_dir() else str(Path(refs).parent)
+    @classmethod
+    def read(cls, out: Path, why: str) -> "RunRecord":
+        """The record of the run in ``out``; ``why`` completes the error when there is none. Every key is checked
+        (its type, and each setting's range): ValueError naming the file and the key otherwise."""
+        from .io_utils import read_json_object
 
+        path = Path(out) / CONFIG
+        if not path.exists():
+            raise ValueError(f"{path}: {why}")
+        saved = read_json_object(path, "run record", "a JSON object (an mi-gs run record)")
+        if not isinstance(saved.get("train"), dict):
+            raise ValueError(f"{path}: the run record has no training settings (\"train\"); it was not written by "
+                             "mi-gs optimize or was edited")
+        if not isinstance(saved.get("dataset"), str) or not saved["dataset"]:
+            raise ValueError(f"{path}: the run record does not name its dataset (\"dataset\")")
+        unknown = sorted(set(saved) - {"dataset", "dataset_fingerprint", "references", "train"})
+        if unknown:
+            raise ValueError(f"{path}: key {unknown[0]!r}: not a key of an mi-gs run record (dataset, "
+                             "dataset_fingerprint, references, train)")
+        for key in ("dataset_fingerprint", "references"):
+            if not isinstance(saved.get(key), (str, type(None))) or saved.get(key) == "":
+                raise ValueError(f"{path}: key {key!r}: expected a string, got {saved[key]!r}")
+        try:
+            train = TrainConfig.from_dict(saved["train"])
+        except SettingError as e:
+            raise ValueError(f"{path}: key 'train.{e.key}': {e.problem}") from None
+        return cls(saved["dataset"], train, saved.get("dataset_fingerprint"), saved.get("references"))
 
-def saved_key(saved: dict | None) -> str | None:
-    """The references key of a run (the name of its references folder); None for a run without references."""
-    refs = (saved or {}).get("references")
-    return Path(refs).name if refs else None
+    @property
+    def references_key(self) -> str | None:
+        """The key of the run's references (the name of their folder); None for a run without references."""
+        return Path(self.references).name if self.references else None
+
+    def references_cache(self, out: Path) -> str | None:
+        """The cache folder of the run's references: OUTDIR/references when they are there (the folder may have
+        moved), else the folder the run recorded; None for a run without references."""
+        key = self.references_key
+        if key is None:
+            return None
+        here = Path(out) / REFERENCES
+        return str(here) if (here / key).is_dir() else str(Path(self.references).parent)
 
 
 def references_root(out: Path, cache: str | None) -> Path:

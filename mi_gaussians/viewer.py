@@ -157,6 +157,38 @@ def pose_of_camera(cam: Camera) -> tuple[np.ndarray, np.ndarray, float]:
     return _matrix_to_quat(R), -R @ cam.world_to_camera[:3, 3], fov_from_focal(cam.height, cam.fy)
 
 
+def default_camera(g) -> Camera:
+    """A camera looking along +z at a model's centre from 2.5 times its radius (90 % of the centres inside)."""
+    means = np.array(g.means, np.float64).reshape(-1, 3)
+    centre = np.median(means, axis=0)
+    radius = float(np.percentile(np.linalg.norm(means - centre, axis=1), 90)) or 1.0
+    w2c = np.eye(4)
+    w2c[:3, 3] = -(centre - [0.0, 0.0, 2.5 * radius])
+    return Camera(width=800, height=600, fx=600.0, fy=600.0, cx=400.0, cy=300.0, world_to_camera=w2c, name="default")
+
+
+def dataset_entries(ds) -> list[ViewEntry]:
+    """The camera list of a dataset's training and test views, each with its reference when the image exists."""
+    from pathlib import Path
+
+    return [ViewEntry(f"{kind} {v.name}", v.camera, v.load_image if Path(v.image_path).is_file() else None)
+            for kind, views in (("train", ds.train), ("test", ds.test)) for v in views]
+
+
+def run_entries(record, out, warn: Callable[[str], None]) -> tuple[list[ViewEntry], str, tuple]:
+    """(camera list, colour space, background) of the dataset the run in ``out`` (its ``RunRecord``) was trained
+    on. A scene file's references are not rendered again: views whose reference is gone are listed without a
+    picture. A dataset that cannot be loaded any more gives no cameras, and a line to ``warn``."""
+    from .runs import run_dataset
+
+    try:
+        ds = run_dataset(record, out, render_missing=False)
+    except (ValueError, OSError, RuntimeError) as e:
+        warn(f"the run's dataset cannot be loaded ({e}); viewing without its cameras")
+        return [], "srgb", tuple(record.train.data.background)
+    return dataset_entries(ds), ds.color_space, tuple(float(b) for b in ds.background)
+
+
 # ---------------------------------------------------------------------------------------------------- images
 def _turbo(x: np.ndarray) -> np.ndarray:
     from matplotlib import colormaps

@@ -210,7 +210,7 @@ class GaussianSplattingIntegrator(mi.CppADIntegrator):
 
     def to_string(self):
         return (f"GaussianSplattingIntegrator[background={self.background}, sh_degree={self.sh_degree}, "
-                f"depth_aov={self.depth_aov}, color_space={self.color_space!r}]")
+                f"depth_aov={self.depth_aov}, color_space={self.color_space!r}, antialiased={self.cfg.antialiased}]")
 
 
 def register() -> list[str]:

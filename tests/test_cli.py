@@ -135,13 +135,13 @@ def test_info_on_scene_xml_takes_parameters(tmp_path):
 
 
 def test_parser_defaults_come_from_the_config():
-    from mi_gaussians.cli import build_parser
+    from mi_gaussians.cli import build_parser, train_options
     from mi_gaussians.config import ConvertConfig, DataConfig, TrainConfig
 
     p = build_parser()
-    a, t = p.parse_args(["optimize", "scene", "-o", "out"]), TrainConfig()
-    assert (a.test_every, a.seed, a.checkpoint_every, a.eval_every) == (t.data.test_every, t.seed,
-                                                                         t.checkpoint_every, t.eval_every)
+    a = p.parse_args(["optimize", "scene", "-o", "out"])
+    for scene_file in (False, True):                # a run without options has every default of config.py
+        assert train_options.new_run_config(a, scene_file) == TrainConfig()
     assert p.parse_args(["info", "x"]).resolution == DataConfig().resolution
     c, cc = p.parse_args(["convert", "images", "-o", "out"]), ConvertConfig()
     assert (c.camera_model, c.threads, c.max_image_size, c.resize) == (cc.camera_model, cc.num_threads,
@@ -163,13 +163,17 @@ def test_run_folder(tmp_path):
     rf.clear_run(out)
     assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()) == \
         ["references/abc/train/x.exr"]
-    saved = {"references": "/moved/away/abc"}
-    assert rf.saved_key(saved) == "abc" and rf.saved_key(None) is None
-    assert rf.saved_cache(saved, out) == str(out / "references")           # found where the run is now
-    assert rf.saved_cache({"references": "/elsewhere/def"}, out) == "/elsewhere"
+    from mi_gaussians.config import TrainConfig
+
+    record = rf.RunRecord("/data", TrainConfig(), references="/moved/away/abc")
+    assert record.references_key == "abc" and rf.RunRecord("/data", TrainConfig()).references_key is None
+    assert record.references_cache(out) == str(out / "references")           # found where the run is now
+    assert rf.RunRecord("/d", TrainConfig(), references="/elsewhere/def").references_cache(out) == "/elsewhere"
     assert rf.references_root(out, None) == out / "references" and rf.references_root(out, "c") == Path("c")
     with pytest.raises(ValueError, match="nothing to resume"):
-        rf.read_saved(tmp_path / "empty", "nothing to resume")
+        rf.RunRecord.read(tmp_path / "empty", "nothing to resume")
+    record.write(out)                                                         # (atomically)
+    assert rf.RunRecord.read(out, "missing") == record
 
 
 def _read_exr(path: Path) -> np.ndarray:

@@ -46,7 +46,17 @@ def test_settings_are_parsed_as_their_field_types():
     ("optim.iterations=1.5", "not a valid int"),
     ("optim.random_background=maybe", "not a valid bool"),
     ("data.background=1,1", "expected 3 comma-separated values"),
-    ("densify.min_opacity=-0.1", "must not be negative"),
+    ("densify.grad_threshold=-0.1", "must not be negative"),
+    # each setting's range (config.RULES)
+    ("densify.min_opacity=1.5", "must be >= 0 and < 1, got 1.5"),
+    ("optim.iterations=0", "must be >= 1, got 0"),
+    ("checkpoint_every=0", "must be >= 1"),
+    ("mcmc.init_opacity=1", "must be > 0 and < 1"),
+    ("optim.sh_degree=4", "must be >= 0 and <= 3"),
+    ("strategy=sgd", "'sgd' is not one of default, mcmc"),
+    ("data.random_init=sphere", "'sphere' is not one of cube, frustum"),
+    ("scene.resolution=8", "must be >= 16"),
+    ("scene.resolution=64,64,64", "expected 1 to 2 values, got 3"),
 ])
 def test_bad_settings_are_one_line_errors(text, needle):
     with pytest.raises(ValueError) as e:

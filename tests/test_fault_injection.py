@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_gaussians.run_folder import _TEMPORARY
+from mi_gaussians.run_folder import is_temporary_file
 from synthetic_dataset import make_blender_dataset
 
 EXE = str(Path(sys.executable).parent / "mi-gs")
@@ -32,7 +32,7 @@ ARGS = ["--iterations", str(ITERATIONS), "--white-background", "--sh-degree", "1
 
 
 def temporary_files(out: Path) -> list[Path]:
-    return [p for p in out.rglob("*") if _TEMPORARY.match(p.name)]
+    return [p for p in out.rglob("*") if is_temporary_file(p.name)]
 
 
 def checkpoint_step(out: Path) -> int:
@@ -61,7 +61,7 @@ def _kill_while_writing(proc: subprocess.Popen, out: Path, deadline: float) -> b
     """Poll the checkpoint folder and kill as soon as a temporary checkpoint appears; True if one was seen."""
     folder = out / "checkpoints"
     while time.time() < deadline and proc.poll() is None:
-        if folder.is_dir() and any(_TEMPORARY.match(n) for n in os.listdir(folder)):
+        if folder.is_dir() and any(is_temporary_file(n) for n in os.listdir(folder)):
             proc.send_signal(signal.SIGKILL)
             return True
         time.sleep(0.0005)

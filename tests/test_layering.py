@@ -9,8 +9,8 @@ The layers, bottom to top (a module may import from its own layer or a lower one
     2    model         mi_gaussians.model.*
     3    raster        mi_gaussians.raster.*
     4    plugins       plugins/ (installed as mi_gaussians.plugins)
-    5    training      evaluate, report, mi_gaussians.optim.*
-    6    front ends    cli, viewer, and the package itself (mi_gaussians/__init__.py, the public face)
+    5    training      evaluate, report, runs (what a run trained on, how to render its model), mi_gaussians.optim.*
+    6    front ends    cli (a package: one module per command), viewer, and the package itself (mi_gaussians/__init__.py, the public face)
 
 Every import is collected with ``ast``, those inside functions and ``if TYPE_CHECKING`` blocks included, absolute
 (``mi_gaussians.x``) and relative (``from ..x import y``, ``from . import x``). A module missing from the table fails
@@ -50,6 +50,7 @@ LAYERS: dict[str, float] = {
     "mi_gaussians.report": 5,
     "mi_gaussians.optim": 5,
     # 6: front ends and the package's public face
+    "mi_gaussians.runs": 5,
     "mi_gaussians.cli": 6,
     "mi_gaussians.viewer": 6,
     "mi_gaussians": 6,

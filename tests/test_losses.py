@@ -150,7 +150,7 @@ def test_window_and_argument_checks():
     np.testing.assert_allclose(np.outer(w, w), window_2d(), rtol=1e-12)
     x = owned_tensor(np.zeros((8, 8, 3)))
     with pytest.raises(ValueError):
-        image_ops.ssim(x, x, window=10)
+        image_ops.ssim(x, x, image_ops.SSIMParams(window=10))
     with pytest.raises(ValueError):
         image_ops.ssim(x, owned_tensor(np.zeros((8, 9, 3))))
     with pytest.raises(TypeError):

@@ -275,13 +275,13 @@ def test_references_are_cached_and_keyed(tmp_path, monkeypatch):
     load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", progress=False)
     assert len(calls) == 1                              # only what is missing
     # the viewer's load renders nothing: the view whose reference is gone has no picture
-    from mi_gaussians.cli import _entries
+    from mi_gaussians.viewer import dataset_entries
 
     files[0].unlink()
     ds = load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", progress=False, render_missing=False)
     assert len(calls) == 1 and not files[0].exists()
     assert [v.image_path for v in ds.train + ds.test if not v.image_path.is_file()] == [files[0]]
-    entries = _entries(ds)
+    entries = dataset_entries(ds)
     assert [e.reference is None for e in entries].count(True) == 1 and len(entries) == 4
     load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", progress=False)
     assert len(calls) == 2 and files[0].is_file()

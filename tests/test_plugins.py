@@ -36,7 +36,8 @@ def model(tmp_path):
 
 def test_registered_for_active_and_later_variants(variant):
     integ = mi.load_dict({"type": "gaussian_splatting"})
-    assert "GaussianSplattingIntegrator" in str(integ)
+    assert "GaussianSplattingIntegrator" in str(integ) and "antialiased=False" in str(integ)
+    assert "antialiased=True" in str(mi.load_dict({"type": "gaussian_splatting", "antialiased": True}))
     mi.set_variant(variant.replace("_rgb", "_mono"))
     try:
         assert "GaussianSplattingIntegrator" in str(mi.load_dict({"type": "gaussian_splatting"}))

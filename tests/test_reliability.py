@@ -302,3 +302,20 @@ def test_resolution_with_a_camera_json_is_refused(tmp_path):
     assert_one_line_error(run("render", SCENES / "tiny_gaussians.ply", "--camera", SCENES / "tiny_gaussians_camera.json",
                               "-r", 2, "-o", tmp_path / "a.png"), "--resolution applies to --dataset only")
     assert not (tmp_path / "a.png").exists()
+
+
+def test_a_hand_edited_config_json_is_one_line_naming_the_key(copy_of):
+    """Wrong types and values in config.json are refused by every command that reads it, naming the file and the
+    key (a string "300" is not read as a number, "false" not as true, a checkpoint period of 0 not divided by)."""
+    data, out = copy_of
+    good = json.loads((out / "config.json").read_text())
+    for section, key, value in (("optim", "iterations", "300"), ("raster", "antialiased", "false"),
+                                (None, "seed", "abc"), (None, "checkpoint_every", 0)):
+        cfg = json.loads(json.dumps(good))
+        (cfg["train"][section] if section else cfg["train"])[key] = value
+        (out / "config.json").write_text(json.dumps(cfg))
+        name = f"train.{section}.{key}" if section else f"train.{key}"
+        before = snapshot(out)
+        assert_one_line_error(run("optimize", data, "-o", out, "--resume", "--quiet"), "config.json", name)
+        assert_one_line_error(run("eval", out), "config.json", name)
+        assert snapshot(out) == before

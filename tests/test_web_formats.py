@@ -122,7 +122,7 @@ def test_smallest_three_and_version_2(tmp_path):
     rng = np.random.default_rng(3)
     q = rng.normal(size=(2000, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
-    back = wf._unpack_smallest_three(wf._pack_smallest_three(q))
+    back = wf.unpack_smallest_three(wf.pack_smallest_three(q))
     assert np.abs(_rotation_matrices(back) - _rotation_matrices(q)).max() < 0.01
     # a version-2 file (3-byte rotations), written here from the published layout
     p = _model(n=50, degree=0)

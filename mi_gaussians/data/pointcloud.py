@@ -1,8 +1,8 @@
 """Initial point clouds for layouts without SfM points, and the scene extent of a set of cameras.
 
 Reference behaviour (3DGS ``readNerfSyntheticInfo``): 100k points uniform in the cube ``[-1.3, 1.3]^3``. The reference
-gives them the colours ``SH2RGB(U[0,1)/255)``, i.e. a grey of about 0.5; ``conventions.md`` asks for random colours, so
-ours are uniform in ``[0, 1)^3`` (the optimizer rewrites them within a few hundred steps either way).
+gives them the colours ``SH2RGB(U[0,1)/255)``, i.e. a grey of about 0.5; ``docs/conventions.md`` asks for random
+colours, so ours are uniform in ``[0, 1)^3`` (the optimizer rewrites them within a few hundred steps either way).
 
 For instant-ngp captures (no points, arbitrary world frame) the cube is centred on the *focus point* of the cameras,
 the point nearest all optical axes in the least-squares sense, with a half-size equal to the median distance from the
@@ -19,6 +19,8 @@ from __future__ import annotations
 from typing import Sequence
 
 import numpy as np
+
+from .. import config
 
 # The reference's cube for NeRF-synthetic scenes: [-1.3, 1.3]^3.
 BLENDER_BOX_HALF_SIZE = 1.3
@@ -93,9 +95,10 @@ def blender_random_points(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 
-#: Initial point samplers of layouts without SfM points (``DataConfig.random_init``): the reference's cube (Blender:
-#: [-1.3, 1.3]^3; others: around the focus point) or the cameras' frustums (:func:`points_in_view`).
-RANDOM_INITS = ("cube", "frustum")
+#: Initial point samplers of layouts without SfM points (``DataConfig.random_init``, named in ``config``): the
+#: reference's cube (Blender: [-1.3, 1.3]^3; others: around the focus point) or the cameras' frustums
+#: (:func:`points_in_view`).
+RANDOM_INITS = config.RANDOM_INITS
 #: Near plane of the frustum sampler (the rasterizer's default near plane).
 FRUSTUM_NEAR = 0.2
 

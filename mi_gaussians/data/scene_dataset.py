@@ -53,7 +53,7 @@ def _check_key(p: Path, key: str, expect_key: str | None) -> None:
                          f"were rendered (key {key}, the run's {expect_key}); start a new run")
 
 
-def _composite_background(background, linear: bool) -> tuple[tuple, tuple]:
+def composite_background(background, linear: bool) -> tuple[tuple, tuple]:
     """(``background`` in the training colour space, its linear value that the references are composited over).
 
     ``background`` is what the Gaussians are drawn over: the references (linear, premultiplied alpha) are composited
@@ -63,7 +63,7 @@ def _composite_background(background, linear: bool) -> tuple[tuple, tuple]:
     return bg, bg_linear
 
 
-def _reference_view(c: Camera, path: Path, bg_linear: tuple, linear: bool) -> View:
+def reference_view(c: Camera, path: Path, bg_linear: tuple, linear: bool) -> View:
     loader = ImageLoader((c.width, c.height), (c.width, c.height), bg_linear)
     return View(c.name, c, path, loader if linear else SrgbEncodedLoader(loader), depth_path=depth_path(path))
 
@@ -71,12 +71,13 @@ def _reference_view(c: Camera, path: Path, bg_linear: tuple, linear: bool) -> Vi
 def load_scene_dataset(path: str | os.PathLike, cfg: SceneConfig = SceneConfig(), cache_root: str | os.PathLike = ".",
                        background=(0.0, 0.0, 0.0), test_every: int = DataConfig().test_every, seed: int = 0,
                        progress: bool = True, log: Callable[[str], None] | None = None,
-                       expect_key: str | None = None, render_missing: bool = True) -> Dataset:
+                       expect_key: str | None = None, render_missing: bool = True, farm=None) -> Dataset:
     """Load ``path``, make its cameras, render (or reuse) the references, initialize points: a ``Dataset``.
 
     ``expect_key``: the references key of an earlier run (``--resume``, ``mi-gs eval``); a scene that no longer
     gives it is refused before anything is rendered. ``render_missing=False`` (the viewer, which wants the cameras):
-    references not in the cache are not rendered, and those views' ``image_path`` does not exist."""
+    references not in the cache are not rendered, and those views' ``image_path`` does not exist. ``farm``: renders
+    the missing references elsewhere (``scene_references.render_references``)."""
     p = Path(path)
     scene = load_scene(p, cfg.defines)
     views = scene_views(scene, p, cfg, test_every=test_every, seed=seed)
@@ -85,10 +86,10 @@ def load_scene_dataset(path: str | os.PathLike, cfg: SceneConfig = SceneConfig()
     cache_dir = Path(cache_root) / key
     if render_missing:
         write_rig_file(cache_dir, p, cfg.defines, key, views)
-    paths = render_references(scene, views, cache_dir, progress=progress, log=log, render=render_missing)
-    bg, bg_linear = _composite_background(background, cfg.linear)
-    train = [_reference_view(c, paths[c.name], bg_linear, cfg.linear) for c in views.train]
-    test = [_reference_view(c, paths[c.name], bg_linear, cfg.linear) for c in views.test]
+    paths = render_references(scene, views, cache_dir, progress=progress, log=log, render=render_missing, farm=farm)
+    bg, bg_linear = composite_background(background, cfg.linear)
+    train = [reference_view(c, paths[c.name], bg_linear, cfg.linear) for c in views.train]
+    test = [reference_view(c, paths[c.name], bg_linear, cfg.linear) for c in views.test]
     # (SfM runs on the composited training images: its cache depends on the background and the colour space)
     sfm_tag = "_".join(f"{b:.4g}" for b in bg) + ("_linear" if cfg.linear else "")
     xyz, rgb = scene_init.initial_points(scene, cfg.init, cfg.init_points, train, cache_dir / f"sfm_{sfm_tag}",

@@ -16,6 +16,11 @@ import numpy as np
 _PARAMETER_NAME = r"[A-Za-z_][A-Za-z0-9_]*"
 
 
+def is_scene_file(path: str | os.PathLike) -> bool:
+    """Whether ``path`` names a Mitsuba scene file (``.xml``), as opposed to a dataset folder or a model."""
+    return Path(path).suffix.lower() == ".xml"
+
+
 def parse_defines(defines) -> dict[str, str]:
     """``["KEY=VALUE", ...]`` (Mitsuba's ``-D KEY=VALUE``) -> ``{KEY: VALUE}``."""
     out = {}

@@ -24,12 +24,13 @@ from typing import Callable
 
 import numpy as np
 
+from ..config import SCENE_INITS
 from ..imwrite import linear_to_srgb, srgb_to_linear, write_png
 from ..io_utils import atomic_path
 from . import pointcloud as _pc
 from .camera import camera_center
 
-INIT_METHODS = ("shapes", "random", "sfm")
+INIT_METHODS = SCENE_INITS      # (named in config)
 
 
 def initial_points(scene, method: str, n: int, train_views, sfm_dir: Path, seed: int = 0, linear: bool = False,

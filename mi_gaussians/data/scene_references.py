@@ -1,20 +1,22 @@
 """Path-traced references of a Mitsuba scene dataset, cached as EXR files.
 
 References are rendered with the scene's own integrator (``mi.render``; a box pixel filter and an RGBA film, so alpha
-marks coverage) and cached as linear RGBA EXR files in ``cache_root/<key>/<split>/<camera>.exr``, with the exact depth beside each
-(``<camera>.depth.npy``: float32 (H, W), the view-space z of the first surface hit through each pixel's centre,
-found by Mitsuba's ray tracer -- what a depth AOV gives at the pixel centre -- and +inf where the ray hits nothing), ``key``
-(:func:`cache_key`) hashing the scene file, every file it references, its parameters, the cameras, the sample count
-and the Mitsuba version. Each file is written atomically as soon as it is rendered, so an interrupted run re-renders
-only what is missing, and a re-run renders nothing. ``rig.json`` beside them records the cameras.
+marks coverage) and cached as linear RGBA EXR files in ``cache_root/<key>/<split>/<camera>.exr``, with the exact
+depth beside each (``<camera>.depth.npy``: float32 (H, W), the view-space z of the first surface hit through each
+pixel's centre, found by Mitsuba's ray tracer -- what a depth AOV gives at the pixel centre -- and +inf where the ray
+hits nothing), ``key`` (:func:`cache_key`) hashing the scene file, every file it references, its parameters, the
+cameras, the sample count and the Mitsuba version. Each file is written atomically as soon as it is rendered, so an
+interrupted run re-renders only what is missing, and a re-run renders nothing. ``rig.json`` beside them records the
+cameras. Each reference has its own sampler seed (:func:`reference_seed`), so a reference rendered in another process
+(a farm of Ray workers) is the same, bit for bit.
 """
-
 from __future__ import annotations
 
 import hashlib
 import json
 import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -29,6 +31,12 @@ from .scene_rig import SceneViews
 CACHE_VERSION = 1       # bump when how references are rendered changes (sampler, seeds, filter, clip planes)
 RIG_FILE = "rig.json"
 _TEST_SEED_OFFSET = 1_000_003
+
+
+def reference_seed(split: str, index: int) -> int:
+    """The sampler seed of the reference of camera ``index`` of ``split`` ('train' or 'test'): the same in every
+    process, so references rendered anywhere are the same."""
+    return index if split == "train" else _TEST_SEED_OFFSET + index
 
 
 def cache_key(path: str | os.PathLike, views: SceneViews, defines=()) -> str:
@@ -124,28 +132,55 @@ def depth_path(exr: Path) -> Path:
     return exr.with_name(exr.stem + ".depth.npy")
 
 
+@dataclass(frozen=True)
+class ReferenceJob:
+    """One camera whose reference (``image``: the path-traced EXR) and/or exact depth (``depth``) are missing."""
+
+    camera: Camera
+    seed: int              # the sampler seed (:func:`reference_seed`)
+    image: bool
+    depth: bool
+
+
+def render_jobs(scene, jobs: list[ReferenceJob], spp: int):
+    """Yield (job index, (H, W, 4) reference or None, (H, W) depth or None) for each of ``jobs``, in order: what a
+    farm does for its share of the views, with the scene it loaded once."""
+    for k, job in enumerate(jobs):
+        yield (k, render_reference(scene, job.camera, spp, job.seed) if job.image else None,
+               reference_depth(scene, job.camera) if job.depth else None)
+
+
 def render_references(scene, views: SceneViews, cache_dir: Path, progress: bool = True,
-                      log: Callable[[str], None] | None = None, render: bool = True) -> dict[str, Path]:
+                      log: Callable[[str], None] | None = None, render: bool = True, farm=None) -> dict[str, Path]:
     """Render every camera that has no EXR (or no depth) in ``cache_dir`` yet; returns camera name -> EXR path.
-    ``render=False``: render nothing, only say where each reference is (or would be)."""
+    ``render=False``: render nothing, only say where each reference is (or would be). ``farm``: renders the jobs
+    elsewhere (``farm.render(jobs, spp)`` yields what :func:`render_jobs` yields, in any order; e.g. Ray workers,
+    :mod:`mi_gaussians.cluster.references`): each reference has its own seed, so where it is rendered does not
+    change it."""
     from tqdm import tqdm
 
     cams = [("train", i, c) for i, c in enumerate(views.train)] + [("test", i, c) for i, c in enumerate(views.test)]
     paths = {c.name: cache_dir / split / f"{c.name}.exr" for split, _, c in cams}
     if not render:
         return paths
-    todo = [(split, i, c) for split, i, c in cams if not paths[c.name].is_file()]
+    jobs = [ReferenceJob(c, reference_seed(split, i), not paths[c.name].is_file(),
+                         not depth_path(paths[c.name]).is_file()) for split, i, c in cams]
+    jobs = [j for j in jobs if j.image or j.depth]
+    todo = sum(j.image for j in jobs)
     if todo and log is not None:
-        log(f"rendering {len(todo)} of {len(cams)} references at {views.spp} spp -> {cache_dir}")
+        where = "" if farm is None else f" on {farm.describe()}"
+        log(f"rendering {todo} of {len(cams)} references at {views.spp} spp{where} -> {cache_dir}")
     elif log is not None:
         log(f"reusing the {len(cams)} cached references in {cache_dir}")
-    for split, i, c in tqdm(todo, desc="references", unit="view", disable=not progress or not todo):
-        seed = i if split == "train" else _TEST_SEED_OFFSET + i
-        write_exr(paths[c.name], render_reference(scene, c, views.spp, seed))
-    for split, i, c in cams:
-        target = depth_path(paths[c.name])
-        if not target.is_file():
-            with atomic_path(target, suffix=".npy") as tmp:
-                with open(tmp, "wb") as f:
-                    np.save(f, reference_depth(scene, c))
+    results = render_jobs(scene, jobs, views.spp) if farm is None else farm.render(jobs, views.spp)
+    with tqdm(total=todo, desc="references", unit="view", disable=not progress or not todo) as bar:
+        for k, image, depth in results:
+            path = paths[jobs[k].camera.name]
+            if image is not None:
+                write_exr(path, image)
+                bar.update(1)
+            if depth is not None:
+                with atomic_path(depth_path(path), suffix=".npy") as tmp:
+                    with open(tmp, "wb") as f:
+                        np.save(f, depth)
     return paths

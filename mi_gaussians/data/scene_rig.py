@@ -18,11 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import DataConfig, SceneConfig
+from ..config import RIGS, DataConfig, SceneConfig
 from .camera import Camera, focal_from_fov
 from .scene_file import scene_bbox
 
-RIGS = ("auto", "sensors", "hemisphere", "sphere")
 FALLBACK_RESOLUTION = (256, 256)
 FALLBACK_FOV = 40.0
 FALLBACK_SPP = 128

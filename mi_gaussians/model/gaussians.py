@@ -1,6 +1,6 @@
 """``Gaussians``: the raw parameters of a 3DGS model as Dr.Jit tensors, nothing else.
 
-Raw values are stored exactly as in a 3DGS ``point_cloud.ply`` (see ``conventions.md``)::
+Raw values are stored exactly as in a 3DGS ``point_cloud.ply`` (see ``docs/conventions.md``)::
 
     means      (N, 3)        world-space centres
     scales     (N, 3)        log standard deviations (sigma = exp(scale))

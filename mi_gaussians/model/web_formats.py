@@ -112,7 +112,7 @@ def read_splat(path) -> dict[str, np.ndarray]:
 
 
 # ---------------------------------------------------------------------------------------------------- .spz
-def _pack_smallest_three(q: np.ndarray) -> np.ndarray:
+def pack_smallest_three(q: np.ndarray) -> np.ndarray:
     """(N, 4) unit (w, x, y, z) quaternions -> (N, 4) bytes of the v3 encoding (components in (x, y, z, w) order)."""
     xyzw = q[:, [1, 2, 3, 0]]
     largest = np.argmax(np.abs(xyzw), axis=1)
@@ -129,8 +129,8 @@ def _pack_smallest_three(q: np.ndarray) -> np.ndarray:
     return packed.astype("<u4").view(np.uint8).reshape(-1, 4)
 
 
-def _unpack_smallest_three(b: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`_pack_smallest_three`: (N, 4) bytes -> (N, 4) (w, x, y, z)."""
+def unpack_smallest_three(b: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`pack_smallest_three`: (N, 4) bytes -> (N, 4) (w, x, y, z)."""
     packed = b.copy().view("<u4").reshape(-1).astype(np.uint32)
     largest = packed >> 30
     xyzw = np.zeros((len(packed), 4), np.float64)
@@ -168,7 +168,7 @@ def spz_bytes(p: dict, antialiased: bool = False) -> bytes:
     colours = _u8(np.asarray(p["sh_dc"], np.float64) * (SPZ_COLOUR_SCALE * 255.0) + 127.5)
     scales = _u8((np.asarray(p["scales"], np.float64) + 10.0) * 16.0)
     q = _unit_quaternions(p["rotations"]) * np.array([1.0, 1.0, -1.0, -1.0])
-    rotations = _pack_smallest_three(q)
+    rotations = pack_smallest_three(q)
     k = sh_rest.shape[1]
     sh = sh_rest * SPZ_SH_FLIP[:k, None]
     bucket = np.where(np.arange(k) < 3, 8, 16)[None, :, None]
@@ -227,7 +227,7 @@ def read_spz(path) -> tuple[dict[str, np.ndarray], bool]:
     colours = (take(3 * n).reshape(n, 3).astype(np.float64) - 127.5) / (SPZ_COLOUR_SCALE * 255.0)
     scales = take(3 * n).reshape(n, 3).astype(np.float64) / 16.0 - 10.0
     if version == 3:
-        q = _unpack_smallest_three(take(4 * n).reshape(n, 4))
+        q = unpack_smallest_three(take(4 * n).reshape(n, 4))
     else:
         xyz = take(3 * n).reshape(n, 3).astype(np.float64) / 127.5 - 1.0
         q = np.concatenate([np.sqrt(np.maximum(0.0, 1.0 - np.sum(xyz * xyz, axis=1)))[:, None], xyz], axis=1)

@@ -12,7 +12,8 @@ which would throw away every Gaussian's Adam history and restart bias correction
 the moments of surviving rows and gives new rows zero moments. :meth:`~GaussianAdam.keep`,
 :meth:`~GaussianAdam.append`, :meth:`~GaussianAdam.reset_moments` and :meth:`~GaussianAdam.replace` do that, each
 through the one helper :meth:`~GaussianAdam._update` (as gsplat routes every change through
-``_update_param_with_optimizer``), which is also the only code that reads or writes Dr.Jit 1.5's private state layout::
+``_update_param_with_optimizer``). This module is the only one that reads or writes Dr.Jit 1.5's private state layout
+(in ``_update``, and in the constructor, ``moments``, ``step``, ``export_moments`` and ``import_moments``)::
 
     adam.state[key] = (value, promoted, lr, (t, m, v, vmax))
 

@@ -42,7 +42,7 @@ Deliberate differences from the reference code (each flagged where it is impleme
 
 * Screen-size pruning is live. The reference's ``densification_postfix`` zeroes ``max_radii2D`` before its prune
   test, so its ``max_radii2D > 20`` test never fires (only the world-size test does); we apply the rule as documented
-  in ``conventions.md``: new rows inherit their source's ``max_radii`` (as gsplat does) and the test uses them. Set
+  in ``docs/conventions.md``: new rows inherit their source's ``max_radii`` (as gsplat does) and the test uses them. Set
   ``DensifyConfig.max_screen_size = float("inf")`` to reproduce the reference's effective behaviour.
 * The opacity reset keeps a logit unchanged when its opacity is already below ``reset_opacity`` (the reference round
   trips it through sigmoid and logit: equal up to float rounding, except that very negative logits would become -inf).
@@ -52,7 +52,7 @@ Deliberate differences from the reference code (each flagged where it is impleme
 Calling order. PyTorch's Adam skips parameters whose ``.grad`` is None, which is what the reference's freshly rebuilt
 parameters are after a densification (all six) or an opacity reset (opacity), so its optimizer step is skipped on
 those iterations; the ``changed`` flag of the returned info lets the trainer do the same. Every rewritten parameter is
-a fresh Dr.Jit leaf with zero gradient (gradients are not carried: see :mod:`.optimizer`). A trainer that steps anyway
+a fresh Dr.Jit leaf with zero gradient (gradients are not carried: see :mod:`.adam`). A trainer that steps anyway
 leaves new rows and reset opacities exactly in place (zero gradient, zero moments); kept rows would coast on their
 decayed momentum.
 
@@ -69,7 +69,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..config import DensifyConfig
+from ..config import DensifyConfig, check_section
 from ..drjit_utils import fmax, owned_array, quaternion_to_matrix, sigmoid
 from .adam import GaussianAdam, concat, gather_rows
 from .strategy import StepInfo, Strategy
@@ -119,12 +119,15 @@ class DefaultStrategy(Strategy):
     opacities at ``densify_from_iter`` when it trains on a white background."""
 
     def __init__(self, cfg: DensifyConfig, extent: float, seed: int = 0, white_background: bool = False):
-        if cfg.split_count < 1:
-            raise ValueError("split_count must be >= 1")
+        check_section("densify", cfg)
         self.cfg = cfg
         self.extent = float(extent)
         self.seed = int(seed)
         self.white_background = bool(white_background)
+
+    @classmethod
+    def from_config(cls, cfg, extent: float, white_background: bool) -> "DefaultStrategy":
+        return cls(cfg.densify, extent, seed=cfg.seed + 2, white_background=white_background)
 
     # ------------------------------------------------------------------ state
     def initialize_state(self, n: int) -> DensifyState:

@@ -43,7 +43,7 @@ import mitsuba as mi
 import numpy as np
 from scipy.special import comb
 
-from ..config import MCMCConfig
+from ..config import MCMCConfig, check_section
 from ..conventions import logit
 from ..conventions import sigmoid as sigmoid_np
 from ..drjit_utils import quaternion_to_matrix, sigmoid
@@ -87,21 +87,16 @@ class MCMCStrategy(Strategy):
     """MCMC densification (see the module docstring). ``seed``: of the relocation draws and the position noise."""
 
     def __init__(self, cfg: MCMCConfig, seed: int = 0):
-        if cfg.cap_max < 1:
-            raise ValueError(f"the Gaussian budget (--max-gaussians) must be >= 1, got {cfg.cap_max}")
-        if not 0.0 < cfg.init_opacity < 1.0:
-            raise ValueError(f"mcmc.init_opacity must lie strictly between 0 and 1, got {cfg.init_opacity}")
-        if not cfg.init_scale > 0.0:
-            raise ValueError(f"mcmc.init_scale must be positive, got {cfg.init_scale}")
-        if cfg.refine_every < 1:
-            raise ValueError(f"mcmc.refine_every must be >= 1, got {cfg.refine_every}")
-        if not 0.0 <= cfg.min_opacity < 1.0:
-            raise ValueError(f"mcmc.min_opacity must lie in [0, 1), got {cfg.min_opacity}")
+        check_section("mcmc", cfg)
         self.cfg = cfg
         self.seed = int(seed)
         self.init_opacity = float(cfg.init_opacity)
         self.init_scale = float(cfg.init_scale)
         self.max_gaussians = int(cfg.cap_max)
+
+    @classmethod
+    def from_config(cls, cfg, extent: float, white_background: bool) -> "MCMCStrategy":
+        return cls(cfg.mcmc, seed=cfg.seed + 2)
 
     # ------------------------------------------------------------------ state
     def initialize_state(self, n: int) -> MCMCState:

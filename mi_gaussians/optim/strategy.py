@@ -32,8 +32,10 @@ the loss before the backward pass, and :meth:`Strategy.step_post_update` changes
 position noise). A strategy also says how the Gaussians of a run start (:attr:`Strategy.init_opacity`,
 :attr:`Strategy.init_scale`) and how many there may be (:attr:`Strategy.max_gaussians`).
 
-To add a strategy: subclass :class:`Strategy`, give it a state dataclass, implement the hooks (and
-:meth:`Strategy.export_state` / :meth:`Strategy.import_state` for checkpoints), and select it in the trainer.
+To add a strategy: subclass :class:`Strategy`, give it a state dataclass, implement :meth:`Strategy.from_config` and
+the hooks (and :meth:`Strategy.export_state` / :meth:`Strategy.import_state` for checkpoints), give it a settings
+section in ``config.py`` and its name in ``config.STRATEGIES``, and its class in
+:data:`mi_gaussians.optim.strategies.CLASSES` (``--strategy`` then accepts it).
 :class:`~mi_gaussians.optim.densify.DefaultStrategy` (the paper's adaptive density control) is the reference
 implementation.
 """
@@ -70,6 +72,12 @@ class Strategy:
     init_scale: float = 1.0
     #: The most Gaussians the strategy allows (None: no bound); a larger initial point cloud is subsampled to it.
     max_gaussians: int | None = None
+
+    @classmethod
+    def from_config(cls, cfg, extent: float, white_background: bool) -> "Strategy":
+        """The strategy of a run: ``cfg`` is its :class:`~mi_gaussians.config.TrainConfig` (the strategy reads its
+        own section), ``extent`` the scene extent, ``white_background`` whether it trains on white."""
+        raise NotImplementedError
 
     def initialize_state(self, n: int):
         """A fresh state for a model of ``n`` Gaussians."""

@@ -41,8 +41,7 @@ from ..raster.projection import ViewParams
 from ..raster.rasterize import render
 from .. import report, run_folder
 from .adam import GaussianAdam
-from .densify import DefaultStrategy
-from .mcmc import MCMCStrategy
+from .strategies import make_strategy
 from .strategy import Strategy
 from .losses import inverse_depth_target
 from .schedules import expon_lr, sh_degree_at
@@ -122,19 +121,6 @@ def initial_gaussians(ds: Dataset, sh_degree: int, strategy: Strategy | None = N
                                  scale_factor=strategy.init_scale)
 
 
-def make_strategy(cfg: TrainConfig, extent: float, white_background: bool) -> Strategy:
-    """The densification strategy ``cfg.strategy`` names ('default': the paper's, 'mcmc')."""
-    if cfg.strategy == "default":
-        return DefaultStrategy(cfg.densify, extent, seed=cfg.seed + 2, white_background=white_background)
-    if cfg.strategy == "mcmc":
-        return MCMCStrategy(cfg.mcmc, seed=cfg.seed + 2)
-    raise ValueError(f"unknown densification strategy {cfg.strategy!r} (expected one of {', '.join(STRATEGIES)})")
-
-
-#: The densification strategies ``TrainConfig.strategy`` may name.
-STRATEGIES = ("default", "mcmc")
-
-
 class Trainer:
     def __init__(self, ds: Dataset, cfg: TrainConfig, out_dir: str | Path, progress: bool = True):
         if not ds.train:
@@ -145,6 +131,7 @@ class Trainer:
         self.background = tuple(float(b) for b in ds.background)
         self.history = History()
         self.step = 0
+        self.resumed_from: int | None = None    # the checkpoint's iteration, when run(resume=True) continued one
         self.elapsed = 0.0        # training seconds (evaluation excluded)
         self.bg_rng = np.random.default_rng(cfg.seed + 1)
         self.sampler = ViewSampler(len(ds.train), cfg.seed)
@@ -411,9 +398,9 @@ class Trainer:
                                    color_space=self.ds.color_space)
         return summarize(scores)["psnr"]
 
-    def run(self, resume: bool = False, record: dict | None = None, monitor=None) -> dict:
-        """Train to ``cfg.optim.iterations`` (from the checkpoint with ``resume``) and write the outputs; ``record``:
-        more entries for ``config.json`` (e.g. the dataset's fingerprint); ``monitor``: called with the trainer
+    def run(self, resume: bool = False, fingerprint: str | None = None, monitor=None) -> dict:
+        """Train to ``cfg.optim.iterations`` (from the checkpoint with ``resume``) and write the outputs;
+        ``fingerprint``: of the dataset's content, for the run's record; ``monitor``: called with the trainer
         after every iteration (e.g. a viewer; it may read the model, and must not change it), outside the
         training time."""
         from tqdm import tqdm
@@ -422,10 +409,9 @@ class Trainer:
         self.out.mkdir(parents=True, exist_ok=True)
         if resume:
             self.load_checkpoint()
-        saved = {"dataset": str(Path(self.ds.root).resolve()), **(record or {}), "train": cfg.to_dict()}
-        if self.ds.references is not None:
-            saved["references"] = str(Path(self.ds.references).resolve())
-        report.write_json(self.out / run_folder.CONFIG, saved)
+            self.resumed_from = self.step
+        refs = None if self.ds.references is None else str(Path(self.ds.references).resolve())
+        run_folder.RunRecord(str(Path(self.ds.root).resolve()), cfg, fingerprint, refs).write(self.out)
         total = cfg.optim.iterations
         self._bar = tqdm(total=total, initial=self.step, disable=not self.progress, unit="it", dynamic_ncols=True)
         self._ema = None

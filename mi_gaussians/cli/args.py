@@ -1,0 +1,177 @@
+"""What the commands share: argument types (each refuses a bad value in one line), the flag groups several commands
+take (the Mitsuba variant, the output and ``--overwrite``, a model input, scene parameters, the viewer), and the
+checks behind them."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+from .errors import InputError
+
+# The rasterizer is Dr.Jit code with a hand-written backward pass and RGB colours: a JIT variant with automatic
+# differentiation and RGB colour
+SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
+VARIANT_HELP = "Mitsuba variant: llvm_ad_rgb or cuda_ad_rgb (default: cuda_ad_rgb if a GPU is available)"
+
+
+# ------------------------------------------------------------------------------------------------ argument types
+def _integer(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    value = _integer(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    value = _integer(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text}")
+    return value
+
+
+def finite_float(text: str) -> float:
+    """argparse type: a finite number (no nan or inf)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    value = finite_float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text}")
+    return value
+
+
+def field_of_view(text: str) -> float:
+    """argparse type: a field of view in degrees, strictly between 0 and 180."""
+    value = finite_float(text)
+    if not 0 < value < 180:
+        raise argparse.ArgumentTypeError(f"expected degrees between 0 and 180, got {text}")
+    return value
+
+
+def sh_degree(text: str) -> int:
+    """argparse type: a spherical-harmonics degree 0..3."""
+    value = _integer(text)
+    if not 0 <= value <= 3:
+        raise argparse.ArgumentTypeError(f"expected an SH degree 0, 1, 2 or 3, got {text}")
+    return value
+
+
+def background(values) -> tuple[float, float, float]:
+    """The colour of ``--background`` (one value or three; black when not given)."""
+    if values is None:
+        return (0.0, 0.0, 0.0)
+    if len(values) == 1:
+        return (values[0],) * 3
+    if len(values) != 3:
+        raise InputError("--background takes one value or three (r g b)")
+    return tuple(values)
+
+
+# ------------------------------------------------------------------------------------------------ flag groups
+def add_variant(parser, after_command: bool = False) -> None:
+    """``--variant``; after the command it replaces one given before it (``SUPPRESS``: absent, it leaves that)."""
+    parser.add_argument("--variant", default=argparse.SUPPRESS if after_command else None, help=VARIANT_HELP)
+
+
+def add_output(parser, help: str, overwrite: str | None = None) -> None:
+    """``-o/--output`` (required), and ``--overwrite`` with the help ``overwrite`` when the command replaces."""
+    parser.add_argument("-o", "--output", required=True, help=help)
+    if overwrite is not None:
+        parser.add_argument("--overwrite", action="store_true", help=overwrite)
+
+
+def add_model_input(parser, help: str, antialiased: str) -> None:
+    """The model to read (``input``) and ``--[no-]antialiased`` (how it renders; default: as it was trained)."""
+    parser.add_argument("input", help=help)
+    parser.add_argument("--antialiased", action=argparse.BooleanOptionalAction, default=None, help=antialiased)
+
+
+def add_background(parser, help: str) -> None:
+    parser.add_argument("--background", type=finite_float, nargs="+", default=None, help=help)
+
+
+def add_define(parser, help: str) -> None:
+    """``-D KEY=VALUE`` (repeatable): the parameters of a Mitsuba scene, as ``mitsuba -D``."""
+    parser.add_argument("-D", "--define", action="append", default=None, metavar="KEY=VALUE", help=help)
+
+
+def add_viewer_options(parser) -> None:
+    """Where the browser viewer serves and how large its frames are (``mi_gaussians.viewer.ViewerConfig``)."""
+    from ..viewer import ViewerConfig
+
+    v = ViewerConfig()
+    parser.add_argument("--port", type=positive_int, default=v.port, help=f"viewer port (default {v.port})")
+    parser.add_argument("--host", default=v.host, help=f"viewer address (default {v.host}; 0.0.0.0: every interface)")
+    parser.add_argument("--max-size", type=positive_int, default=v.max_size,
+                        help=f"longest image side at rest (default {v.max_size})")
+    parser.add_argument("--moving-size", type=positive_int, default=v.moving_size,
+                        help=f"longest image side while the camera moves (default {v.moving_size})")
+
+
+def viewer_config(args):
+    from ..viewer import ViewerConfig
+
+    return ViewerConfig(host=args.host, port=args.port, max_size=args.max_size, moving_size=args.moving_size)
+
+
+def start_viewer(viewer, args) -> None:
+    """Start serving; an address that cannot be served is the user's input error."""
+    try:
+        viewer.start()
+    except OSError as e:
+        raise InputError(f"--host {args.host} --port {args.port}: cannot serve there ({e.strerror or e})") from None
+
+
+# ------------------------------------------------------------------------------------------------------ checks
+def model_suffixes() -> tuple[str, ...]:
+    """The model formats every command reads (``mi_gaussians.model.web_formats.FORMATS``)."""
+    from ..model.web_formats import FORMATS
+
+    return FORMATS
+
+
+def is_model(path: Path) -> bool:
+    return path.suffix.lower() in model_suffixes()
+
+
+def existing(path: str | Path) -> Path:
+    """``path`` as a Path, or the one-line error that it is not there."""
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"{p}: not found")
+    return p
+
+
+def set_variant(name: str | None) -> None:
+    """Select the Mitsuba variant ``name`` (default: ``cuda_ad_rgb`` when a CUDA device exists, else
+    ``llvm_ad_rgb``)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    variant = name or ("cuda_ad_rgb" if dr.has_backend(dr.JitBackend.CUDA) else "llvm_ad_rgb")
+    if variant not in SUPPORTED_VARIANTS:
+        known = "a Mitsuba variant mi-gs cannot use" if variant in mi.variants() else "not a Mitsuba variant"
+        raise InputError(f"--variant {variant}: {known} (mi-gs runs on {' or '.join(SUPPORTED_VARIANTS)})")
+    if variant.startswith("cuda") and not dr.has_backend(dr.JitBackend.CUDA):
+        raise InputError(f"--variant {variant}: no CUDA device or driver is available on this machine "
+                         "(use llvm_ad_rgb)")
+    mi.set_variant(variant)

@@ -1,0 +1,48 @@
+"""``mi-gs eval RUN_DIR``: the metrics of a saved run, recomputed on its test views (``eval.json``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from .errors import InputError
+
+
+def add_parser(sub) -> None:
+    s = sub.add_parser("eval", help="recompute the metrics of a saved run on its test views")
+    s.add_argument("run", help="an mi-gs optimize output folder")
+    s.add_argument("--dataset", default=None, help="dataset folder (default: the one the run was trained on)")
+
+
+def run(args) -> int:
+    from .. import run_folder
+
+    out = Path(args.run)
+    for p in (out / run_folder.CONFIG, out / run_folder.MODEL):
+        if not p.exists():
+            raise InputError(f"{p}: missing (is {out} an mi-gs optimize output folder?)")
+    record = run_folder.RunRecord.read(out, "missing")
+    with run_folder.RunLock(out):                 # (not while a run is writing the folder)
+        return _evaluate(args, out, record)
+
+
+def _evaluate(args, out: Path, record) -> int:
+    from .. import run_folder
+    from ..evaluate import evaluate_views, scores_report
+    from ..model.gaussians import Gaussians
+    from ..report import write_json
+    from ..runs import run_dataset
+
+    ds = run_dataset(record, out, args.dataset)
+    views = ds.test if ds.test else ds.train
+    g = Gaussians.load_ply(out / run_folder.MODEL)
+    scores, note = evaluate_views(g, views, tuple(ds.background), cfg=record.train.raster,
+                                  color_space=ds.color_space)
+    report = scores_report(scores, note)
+    note = report.pop("lpips_note", None)
+    result = {"split": "test" if ds.test else "train", **report, "gaussians": g.n,
+              **({"lpips_note": note} if note else {})}
+    write_json(out / run_folder.EVAL, result)
+    print(json.dumps({"output": str(out / run_folder.EVAL), **result["mean"], "gaussians": g.n,
+                      **({"lpips_note": note} if note else {})}, indent=2))
+    return 0

@@ -1,0 +1,95 @@
+"""``mi-gs optimize SCENE -o OUTDIR``: fit Gaussians to a dataset folder (COLMAP, Blender, instant-ngp) or to the
+path-traced references of a Mitsuba scene (.xml); ``--resume`` continues a run, ``--view`` watches it."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from . import train_options
+from .args import add_output, add_viewer_options, existing, start_viewer, viewer_config
+from .errors import EXIT_DIVERGED, InputError
+
+
+def add_parser(sub) -> None:
+    s = sub.add_parser("optimize", help="fit Gaussians to a COLMAP / Blender / instant-ngp scene folder, or to "
+                                        "path-traced references of a Mitsuba scene .xml")
+    s.add_argument("scene", help="scene folder, or Mitsuba scene file (.xml)")
+    add_output(s, "output folder", overwrite="start a new run in an output folder that holds one (cached references "
+                                             "are kept)")
+    groups = train_options.add_arguments(s)
+    s.add_argument("--set", action="append", default=None, metavar="SECTION.FIELD=VALUE", dest="settings",
+                   help="set any field of the training configuration (mi_gaussians/config.py), applied after the "
+                        "other options, e.g. --set densify.min_opacity=0.1 --set optim.feature_lr=0.005; repeatable")
+    s.add_argument("--resume", action="store_true", help="continue the run saved in the output folder")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.add_argument("--view", action="store_true",
+                   help="serve the viewer while training (mi-gs view's options below), with the loss curve")
+    add_viewer_options(s)
+    groups["scene"].add_argument("--cache", default=None,
+                                 help="folder for the cached references (default OUTDIR/references)")
+
+
+def run(args) -> int:
+    from ..io_utils import check_output_folder
+    from ..optim.trainer import TrainingDiverged
+    from ..runs import train_run
+
+    out = Path(args.output)
+    src = existing(args.scene)
+    check_output_folder(out)
+    cfg, record = _config(args, src, out)
+    watch = (lambda trainer, ds: _training_view(args, trainer, ds, cfg)) if args.view else None
+    try:
+        result = train_run(src, out, cfg, record, overwrite=args.overwrite, cache=args.cache,
+                           progress=not args.quiet, watch=watch)
+    except TrainingDiverged as e:
+        print(f"mi-gs: error: {e}", file=sys.stderr)
+        return EXIT_DIVERGED
+    metrics = result.metrics
+    print(json.dumps({"output": str(out), **metrics["mean"], "gaussians": metrics["gaussians"],
+                      "training_seconds": metrics["training_seconds"]}, indent=2), flush=True)
+    if result.watcher is not None and result.watcher.viewer is not None:
+        _serve_until_stopped(result.watcher)
+    return 0
+
+
+def _config(args, src: Path, out: Path):
+    """(TrainConfig, the record of the run being resumed or None); nothing is written."""
+    from .. import run_folder
+    from ..data.scene_file import is_scene_file
+
+    if args.resume and args.overwrite:
+        raise InputError("give at most one of --resume and --overwrite")
+    if args.resume and args.settings:
+        raise InputError("--set cannot change a run being resumed (its settings are in OUTDIR/config.json)")
+    if args.resume:
+        record = run_folder.RunRecord.read(out, "nothing to resume (no config.json in the output folder)")
+        return train_options.resumed_config(args, record.train, is_scene_file(src), str(out / run_folder.CONFIG)), \
+            record
+    run_folder.check_new_run(out, args.overwrite)
+    return train_options.new_run_config(args, is_scene_file(src)), None
+
+
+def _training_view(args, trainer, ds, cfg):
+    """The viewer of a run being trained (``--view``): a :class:`~mi_gaussians.viewer.TrainingView` serving."""
+    from ..viewer import TrainingView, Viewer, dataset_entries
+
+    live = TrainingView(trainer)
+    live.viewer = Viewer(live, dataset_entries(ds), viewer_config(args), raster=cfg.raster,
+                         color_space=ds.color_space, background=tuple(ds.background),
+                         title=f"mi-gs optimize {Path(args.output).name}")
+    start_viewer(live.viewer, args)
+    print(f"mi-gs: training view at {live.viewer.url}", file=sys.stderr, flush=True)
+    return live
+
+
+def _serve_until_stopped(live) -> None:
+    print(f"mi-gs: training done; the viewer stays at {live.viewer.url} (Ctrl-C stops)", file=sys.stderr, flush=True)
+    try:
+        live.viewer.serve_forever()
+    except KeyboardInterrupt:                 # (the run is done: stopping the viewer is not an error)
+        pass
+    finally:
+        live.close()

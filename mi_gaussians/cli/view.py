@@ -1,0 +1,58 @@
+"""``mi-gs view MODEL|RUN_DIR``: a model in the browser (viser), with the cameras and references of the run it
+came from."""
+
+from __future__ import annotations
+
+from .args import (add_background, add_model_input, add_viewer_options, background, existing, is_model, start_viewer,
+                   viewer_config)
+from .errors import InputError, warn
+
+
+def add_parser(sub) -> None:
+    s = sub.add_parser("view", help="look at a model in the browser (viser): orbit, render modes, dataset cameras")
+    add_model_input(s, "model.ply|.splat|.spz, or an mi-gs optimize output folder",
+                    antialiased="render with Mip-Splatting's 2D filter (default: as the run was trained)")
+    s.add_argument("--camera", help="camera JSON to start from (default: the dataset's first camera)")
+    add_background(s, "background colour (1 or 3 values; default: the run's)")
+    add_viewer_options(s)
+
+
+def run(args) -> int:
+    from .. import run_folder
+    from ..data.camera import Camera
+    from ..model.gaussians import Gaussians
+    from ..runs import model_raster_config
+    from ..viewer import StaticModel, Viewer, default_camera, run_entries
+
+    src = existing(args.input)
+    model = src / run_folder.MODEL if src.is_dir() else src
+    if src.is_dir() and not model.is_file():
+        raise InputError(f"{model}: missing (is {src} an mi-gs optimize output folder?)")
+    if not is_model(model):
+        raise InputError(f"{src}: expected a model (.ply, .splat or .spz) or an mi-gs optimize output folder")
+    raster = model_raster_config(model, args.antialiased, warn=warn)
+    views, color_space, bg = [], "srgb", (0.0, 0.0, 0.0)
+    if (model.parent / run_folder.CONFIG).is_file():
+        try:
+            record = run_folder.RunRecord.read(model.parent, "")
+        except ValueError as e:
+            warn(f"{e}; viewing the model alone")
+        else:
+            views, color_space, bg = run_entries(record, model.parent, warn)
+    if args.background is not None:
+        bg = background(args.background)
+    g = Gaussians.load(model)
+    initial = Camera.from_json(args.camera) if args.camera else None
+    if initial is None and not views:
+        initial = default_camera(g)
+    viewer = Viewer(StaticModel(g), views, viewer_config(args), raster=raster, color_space=color_space,
+                    background=bg, title=f"mi-gs view {src.name}", initial=initial)
+    start_viewer(viewer, args)
+    print(f"mi-gs view: {g.n:,} Gaussians at {viewer.url} (Ctrl-C stops)", flush=True)
+    try:
+        viewer.serve_forever()
+    except KeyboardInterrupt:                     # (how a viewer is meant to end: not an error)
+        pass
+    finally:
+        viewer.stop()
+    return 0

@@ -1,0 +1,170 @@
+"""Runs: training one in its output folder, what a run trained on, and how to render its model. The library side of
+``mi-gs optimize``, ``eval``, ``render``, ``view`` and ``sweep`` (and of the benchmarks).
+
+    result = train_run(src, out, cfg)                    # one run in the folder out (locked while it trains)
+    ds = training_dataset(src, cfg, out)                 # a dataset folder, or a scene file with its references
+    record = RunRecord.read(out, "missing")              # (mi_gaussians.run_folder)
+    ds = run_dataset(record, out)                        # what that run was trained on, to evaluate or view it
+    raster = model_raster_config(out / "point_cloud.ply", antialiased=None)   # as the run rendered it
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from .config import RasterConfig, TrainConfig
+from .data.dataset import Dataset, load_dataset
+from .data.scene_file import is_scene_file
+from .run_folder import CONFIG, GAUSSIAN_SCENE, MODEL, RunLock, RunRecord, references_root
+
+
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+@dataclass
+class RunResult:
+    """What :func:`train_run` did: the metrics it wrote (``metrics.json``), its trainer, the iteration it resumed
+    from (None for a new run) and the watcher it made (``watch``'s result)."""
+
+    metrics: dict
+    trainer: object
+    resumed_from: int | None
+    watcher: object = None
+
+
+def train_run(src: str | Path, out: str | Path, cfg: TrainConfig, record: RunRecord | None = None,
+              overwrite: bool = False, cache: str | None = None, progress: bool = True,
+              watch: Callable | None = None, farm=None, log: Callable[[str], None] | None = _stderr) -> RunResult:
+    """Train one run of ``cfg`` on ``src`` in the folder ``out``: a new one, or the run whose ``record`` is given
+    (resumed from its checkpoint). The folder is locked for the run (one run per folder; a second process gets
+    ``FolderBusy``). Everything is checked (references rendered, every image decoded, a resumed run's dataset
+    unchanged) before an earlier run's outputs are touched; ``overwrite`` then removes them. ``watch(trainer, ds)``,
+    when given, returns an object whose ``training_monitor`` the trainer calls between iterations and whose
+    ``close()`` is called when the run fails (the viewer). ``farm``: renders a scene file's missing references
+    elsewhere (see :mod:`mi_gaussians.cluster.references`). A diverged run raises ``TrainingDiverged``."""
+    out = Path(out)
+    created = not out.exists()
+    lock = RunLock(out)
+    lock.acquire()                                # before anything is written into the folder
+    try:
+        from .run_folder import remove_temporary_files
+
+        remove_temporary_files(out)
+        return _train_locked(Path(src), out, cfg, record, overwrite, cache, progress, watch, farm, log)
+    except BaseException:
+        if created:                               # (a run refused before it wrote anything leaves no folder)
+            lock.release_and_remove_if_empty()
+        raise
+    finally:
+        lock.release()
+
+
+def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cache, progress, watch, farm,
+                  log) -> RunResult:
+    from . import run_folder
+    from .data.dataset import check_trainable_size, fingerprint, verify_images
+    from .optim.trainer import Trainer
+
+    cache = cache or (record.references_cache(out) if record else None)
+    ds = training_dataset(src, cfg, out, cache=cache, progress=progress,
+                          expect_key=record.references_key if record else None, farm=farm, log=log)
+    check_trainable_size(ds)
+    digest = fingerprint(ds) if ds.layout != "mitsuba" else None    # (a scene file's references carry their own key)
+    if record is not None:
+        check_resumed_dataset(src, out, record, digest, log)
+    verify_images(ds.test, progress=progress)
+    trainer = Trainer(ds, cfg, out, progress=progress)     # (decodes the training images)
+    watcher = watch(trainer, ds) if watch is not None else None
+    try:
+        if overwrite:
+            run_folder.clear_run(out)
+        metrics = trainer.run(resume=record is not None, fingerprint=digest,
+                              monitor=None if watcher is None else watcher.training_monitor)
+        if ds.layout == "mitsuba":
+            from .plugins.scene_xml import write_gaussian_scene
+
+            cam = (ds.test or ds.train)[0].camera
+            write_gaussian_scene(out / GAUSSIAN_SCENE, MODEL, cam, ds.color_space, ds.background,
+                                 antialiased=cfg.raster.antialiased)
+    except BaseException:
+        if watcher is not None:
+            watcher.close()
+        raise
+    return RunResult(metrics, trainer, trainer.resumed_from, watcher)
+
+
+def check_resumed_dataset(src: Path, out: Path, record: RunRecord, fingerprint: str | None,
+                          log: Callable[[str], None] | None = _stderr) -> None:
+    """A resumed run trains on the folder it started on, with the same content (ValueError otherwise)."""
+    if Path(record.dataset) != Path(src).resolve():
+        raise ValueError(f"--resume: the run in {out} was trained on {record.dataset}, not on {Path(src).resolve()} "
+                         f"(recorded in {out / CONFIG})")
+    recorded = record.dataset_fingerprint
+    if fingerprint is not None and recorded is not None and recorded.split(":")[0] != fingerprint.split(":")[0]:
+        if log is not None:
+            log(f"mi-gs: warning: {out / CONFIG} holds a dataset fingerprint of an earlier mi-gs; the dataset's "
+                "content is not compared this time (the run's record gets the current one)")
+    elif fingerprint is not None and recorded is not None and recorded != fingerprint:
+        raise ValueError(f"--resume: {src}: the dataset changed since the run in {out} started (its images, "
+                         "cameras or points differ); start a new run (--overwrite or another folder)")
+
+
+def training_dataset(src: str | Path, cfg: TrainConfig, out: str | Path, cache: str | None = None,
+                     progress: bool = True, expect_key: str | None = None, render_missing: bool = True,
+                     farm=None, log: Callable[[str], None] | None = _stderr) -> Dataset:
+    """The dataset a run of ``cfg`` in ``out`` trains on: a dataset folder (COLMAP, Blender, instant-ngp), or a
+    Mitsuba scene file whose path-traced references are cached in ``cache`` (default OUTDIR/references); references
+    missing from the cache are rendered (by ``farm`` when given) unless ``render_missing`` is False. ``expect_key``:
+    the references key of the run being resumed (a scene that changed since is refused before anything is
+    rendered)."""
+    d = cfg.data
+    if is_scene_file(src):
+        from .data.scene_dataset import load_scene_dataset
+
+        return load_scene_dataset(src, cfg.scene, cache_root=references_root(Path(out), cache), background=d.background,
+                                  test_every=d.test_every, seed=d.seed, progress=progress, log=log,
+                                  expect_key=expect_key, render_missing=render_missing, farm=farm)
+    return load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
+                        random_points=d.random_points, seed=d.seed, masks=d.masks, random_init=d.random_init)
+
+
+def run_dataset(record: RunRecord, out: str | Path, dataset: str | None = None, render_missing: bool = True,
+                progress: bool = True) -> Dataset:
+    """The views a run is evaluated or viewed on: those of ``dataset``, else of the dataset it was trained on (a
+    scene file's references from the run's cache, rendered again only if they are gone and ``render_missing``),
+    with the run's resolution, background and split; no initial points."""
+    cfg, out = record.train, Path(out)
+    src = Path(dataset or record.dataset)
+    if is_scene_file(src):
+        cfg = dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, init="random", init_points=1))
+        return training_dataset(src, cfg, out, cache=record.references_cache(out), progress=progress,
+                                expect_key=record.references_key, render_missing=render_missing)
+    d = cfg.data
+    return load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
+                        random_points=0, masks=d.masks)
+
+
+def model_raster_config(model: str | Path, antialiased: bool | None = None,
+                        warn: Callable[[str], None] | None = None) -> RasterConfig:
+    """How to render the model file ``model``: as the run whose ``config.json`` sits beside it was trained (a PLY
+    records nothing about anti-aliasing), or as an ``.spz`` file records it, unless ``antialiased`` says otherwise;
+    the defaults for a lone model. A ``config.json`` that is not a valid run record is passed to ``warn`` (a line)
+    and the defaults are used."""
+    model = Path(model)
+    cfg = RasterConfig()
+    if model.suffix.lower() == ".spz" and antialiased is None:      # (an .spz file records it)
+        from .model.web_formats import read_model
+
+        return dataclasses.replace(cfg, antialiased=bool(read_model(model)[1]))
+    if (model.parent / CONFIG).is_file():
+        try:
+            cfg = RunRecord.read(model.parent, "").train.raster
+        except ValueError as e:      # e.g. another tool's config.json: not a run record
+            if antialiased is None and warn is not None:
+                warn(f"rendering with the default settings: {e}")
+    return cfg if antialiased is None else dataclasses.replace(cfg, antialiased=antialiased)
