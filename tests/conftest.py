@@ -89,3 +89,15 @@ class _BrightSphere:
 @pytest.fixture
 def bright_sphere() -> _BrightSphere:
     return _BrightSphere()
+
+
+@pytest.fixture(scope="session")
+def ray_cluster():
+    """One local Ray cluster for the session (2 CPUs, as CI has): its address, for ``mi-gs ... --address``; this
+    process is connected to it too. Shut down when the session ends, however it ends."""
+    ray = pytest.importorskip("ray", reason="Ray is not installed (pip install '.[test]' brings it)")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
+    try:
+        yield ray.get_runtime_context().gcs_address
+    finally:
+        ray.shutdown()

@@ -2,7 +2,7 @@
 
 The layers, bottom to top (a module may import from its own layer or a lower one, never a higher one)::
 
-    0    base          config, io_utils, _libllvm, drjit_utils, conventions, imwrite, image_ops, run_folder (the
+    0    base          config, io_utils, _libllvm, errors, drjit_utils, conventions, imwrite, image_ops, run_folder (the
                        names and the lock of a run's output folder: the trainer, the report and the CLI share them)
     0.5  metrics       metrics (scores images; sits on the base only)
     1    data          mi_gaussians.data.*
@@ -10,7 +10,9 @@ The layers, bottom to top (a module may import from its own layer or a lower one
     3    raster        mi_gaussians.raster.*
     4    plugins       plugins/ (installed as mi_gaussians.plugins)
     5    training      evaluate, report, runs (what a run trained on, how to render its model), mi_gaussians.optim.*
-    6    front ends    cli (a package: one module per command), viewer, and the package itself (mi_gaussians/__init__.py, the public face)
+    5.5  cluster       mi_gaussians.cluster.* (Ray: sweeps, references rendered by workers)
+    6    front ends    cli (a package: one module per command), viewer, and the package itself
+                       (mi_gaussians/__init__.py, the public face)
 
 Every import is collected with ``ast``, those inside functions and ``if TYPE_CHECKING`` blocks included, absolute
 (``mi_gaussians.x``) and relative (``from ..x import y``, ``from . import x``). A module missing from the table fails
@@ -38,6 +40,7 @@ LAYERS: dict[str, float] = {
     "mi_gaussians.imwrite": 0,
     "mi_gaussians.image_ops": 0,
     "mi_gaussians.run_folder": 0,
+    "mi_gaussians.errors": 0,
     # 0.5: metrics, on the base only
     "mi_gaussians.metrics": 0.5,
     # 1..4
@@ -51,6 +54,8 @@ LAYERS: dict[str, float] = {
     "mi_gaussians.optim": 5,
     # 6: front ends and the package's public face
     "mi_gaussians.runs": 5,
+    # 5.5: beyond one process (Ray), above the training it distributes
+    "mi_gaussians.cluster": 5.5,
     "mi_gaussians.cli": 6,
     "mi_gaussians.viewer": 6,
     "mi_gaussians": 6,

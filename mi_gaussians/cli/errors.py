@@ -3,6 +3,11 @@
 
 from __future__ import annotations
 
+import sys
+
+from ..errors import one_line
+
+EXIT_RUNS_FAILED = 1      # a sweep finished, and some of its runs failed (each recorded with its one-line message)
 EXIT_INPUT_ERROR = 2      # bad input (a file, an option, a setting): one line naming it; nothing was changed
 EXIT_DIVERGED = 3         # the loss or a parameter became NaN/Inf; the run's last good checkpoint is kept
 EXIT_INTERRUPTED = 130    # Ctrl-C (128 + SIGINT, as shells report it)
@@ -10,15 +15,6 @@ EXIT_INTERRUPTED = 130    # Ctrl-C (128 + SIGINT, as shells report it)
 
 class InputError(Exception):
     """A problem with the user's input, reported as one line."""
-
-
-def one_line(e: BaseException) -> str:
-    """The message of ``e`` on one line (at most three of its lines joined). Dr.Jit/Mitsuba wrap errors raised inside
-    custom operations ("... (see above)"): the innermost cause is reported."""
-    while (e.__cause__ or e.__context__) is not None and "see above" in str(e):
-        e = e.__cause__ or e.__context__
-    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
-    return " ".join(lines) if len(lines) <= 3 else " ".join(lines[:3]) + " ..."
 
 
 def os_error_line(e: OSError) -> str:
@@ -31,6 +27,4 @@ def os_error_line(e: OSError) -> str:
 
 def warn(line: str) -> None:
     """A warning on stderr: ``mi-gs: warning: <line>`` (the command goes on)."""
-    import sys
-
     print(f"mi-gs: warning: {line}", file=sys.stderr, flush=True)

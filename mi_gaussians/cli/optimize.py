@@ -3,12 +3,13 @@ path-traced references of a Mitsuba scene (.xml); ``--resume`` continues a run, 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 from pathlib import Path
 
 from . import train_options
-from .args import add_output, add_viewer_options, existing, start_viewer, viewer_config
+from .args import add_output, add_viewer_options, existing, positive_int, start_viewer, viewer_config
 from .errors import EXIT_DIVERGED, InputError
 
 
@@ -29,6 +30,11 @@ def add_parser(sub) -> None:
     add_viewer_options(s)
     groups["scene"].add_argument("--cache", default=None,
                                  help="folder for the cached references (default OUTDIR/references)")
+    groups["scene"].add_argument("--workers", type=positive_int, default=None,
+                                 help="render the missing references on N Ray workers, each loading the scene once "
+                                      "(the same files as one process renders; pip install 'mi-gaussians[ray]')")
+    groups["scene"].add_argument("--address", default=None,
+                                 help="with --workers: join this Ray cluster (default: start a local one)")
 
 
 def run(args) -> int:
@@ -40,10 +46,12 @@ def run(args) -> int:
     src = existing(args.scene)
     check_output_folder(out)
     cfg, record = _config(args, src, out)
+    _check_workers(args, src)
     watch = (lambda trainer, ds: _training_view(args, trainer, ds, cfg)) if args.view else None
     try:
-        result = train_run(src, out, cfg, record, overwrite=args.overwrite, cache=args.cache,
-                           progress=not args.quiet, watch=watch)
+        with _farm(args, src, cfg) as farm:
+            result = train_run(src, out, cfg, record, overwrite=args.overwrite, cache=args.cache,
+                               progress=not args.quiet, watch=watch, farm=farm)
     except TrainingDiverged as e:
         print(f"mi-gs: error: {e}", file=sys.stderr)
         return EXIT_DIVERGED
@@ -53,6 +61,30 @@ def run(args) -> int:
     if result.watcher is not None and result.watcher.viewer is not None:
         _serve_until_stopped(result.watcher)
     return 0
+
+
+def _check_workers(args, src: Path) -> None:
+    from ..data.scene_file import is_scene_file
+
+    if args.address and not args.workers:
+        raise InputError("--address joins a Ray cluster for --workers N (give both)")
+    if args.workers and not is_scene_file(src):
+        raise InputError(f"--workers renders the path-traced references of a scene .xml; {src} is a dataset folder")
+
+
+@contextlib.contextmanager
+def _farm(args, src: Path, cfg):
+    """The Ray workers that render the references (``--workers``), connected for the run; None without."""
+    if not args.workers:
+        yield None
+        return
+    import mitsuba as mi
+
+    from ..cluster.ray_cluster import connected
+    from ..cluster.references import RayFarm
+
+    with connected(args.address, num_cpus=None if args.address else args.workers):
+        yield RayFarm(src, cfg.scene.defines, mi.variant(), workers=args.workers)
 
 
 def _config(args, src: Path, out: Path):

@@ -1,0 +1,39 @@
+"""``mi-gs sweep SPEC.toml -o OUT``: many training runs (datasets x settings x seeds) as Ray tasks, on this machine
+or a cluster (``--address``); see :mod:`mi_gaussians.cluster.sweep`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .args import add_output, existing
+from .errors import EXIT_RUNS_FAILED
+
+
+def add_parser(sub) -> None:
+    s = sub.add_parser("sweep", help="train every run of a spec (datasets x settings x seeds) as Ray tasks, on this "
+                                     "machine or a Ray cluster; results.csv / results.md")
+    s.add_argument("spec", help="the sweep's TOML file (datasets, iterations, seeds, [set], [grid], [resources])")
+    add_output(s, "output folder: runs/<dataset>-<setting>-s<seed>/, references/, results.csv, results.md",
+               overwrite="start every run again (the cached references are kept)")
+    s.add_argument("--address", default=None,
+                   help="join this Ray cluster (e.g. HEAD:6379, or auto); its nodes must see the output folder at the "
+                        "same path (default: start a local one on this machine)")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def run(args) -> int:
+    import mitsuba as mi
+
+    from ..cluster.sweep import run_sweep
+    from ..cluster.sweep_spec import read_spec
+    from ..io_utils import check_output_folder
+
+    spec = read_spec(existing(args.spec), cuda=mi.variant().startswith("cuda"))
+    out = Path(args.output)
+    check_output_folder(out)
+    rows = run_sweep(spec, out, mi.variant(), address=args.address, overwrite=args.overwrite,
+                     progress=not args.quiet)
+    failed = [r for r in rows if r["status"] != "done"]
+    print((out / "results.md").read_text(), flush=True)
+    print(f"{len(rows) - len(failed)} of {len(rows)} runs done -> {out / 'results.csv'}", flush=True)
+    return EXIT_RUNS_FAILED if failed else 0

@@ -1,0 +1,125 @@
+"""Ray, as mi-gaussians uses it: importing it (one line naming the extra when it is missing), joining or starting a
+cluster, checking that every node sees a folder, and setting up a worker (the Mitsuba variant, Dr.Jit's threads)."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import uuid
+from pathlib import Path
+
+#: How to install what this module needs.
+EXTRA = "pip install 'mi-gaussians[ray]' (in the source tree: pip install '.[ray]')"
+#: The longest wait for a node to answer the shared-folder check (seconds).
+CHECK_SECONDS = 120.0
+
+
+def import_ray():
+    """The ``ray`` module, or ValueError with one line saying how to install it."""
+    try:
+        import ray
+    except ImportError:
+        raise ValueError(f"this needs Ray, which is not installed: {EXTRA}") from None
+    return ray
+
+
+@contextlib.contextmanager
+def connected(address: str | None = None, num_cpus: int | None = None):
+    """Join the Ray cluster at ``address``, or start a local one (``num_cpus``: its CPUs, default all); yields the
+    ``ray`` module and disconnects (stopping a local cluster this started) on every path. A driver already
+    connected (e.g. a test's cluster) is used as it is and left connected."""
+    ray = import_ray()
+    if ray.is_initialized():
+        yield ray
+        return
+    kwargs = dict(include_dashboard=False, log_to_driver=False, logging_level="ERROR", configure_logging=True)
+    try:
+        if address:
+            ray.init(address=address, **kwargs)
+        else:
+            ray.init(num_cpus=num_cpus, **kwargs)
+    except (ConnectionError, RuntimeError, ValueError) as e:
+        where = f"--address {address}: cannot join the Ray cluster there" if address else "cannot start Ray"
+        raise ValueError(f"{where} ({' '.join(str(e).split())[:200]})") from None
+    try:
+        yield ray
+    finally:
+        ray.shutdown()
+
+
+def cluster_cpus(ray) -> int:
+    return int(ray.cluster_resources().get("CPU", 0))
+
+
+def _sees(path: str, token: str) -> tuple[bool, str]:
+    """On a node: whether the file ``path`` holds ``token`` (the driver wrote it), and the node's host name."""
+    import socket
+
+    try:
+        return Path(path).read_text() == token, socket.gethostname()
+    except OSError:
+        return False, socket.gethostname()
+
+
+def check_shared_folder(ray, folder: Path) -> None:
+    """Every alive node of the cluster sees ``folder`` (the same file system as this driver): ValueError with one
+    line naming the nodes that do not (or do not answer within :data:`CHECK_SECONDS`)."""
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    folder = Path(folder).resolve()
+    folder.mkdir(parents=True, exist_ok=True)
+    token_file = folder / f".mi-gs-cluster-check-{uuid.uuid4().hex}"
+    token = uuid.uuid4().hex
+    token_file.write_text(token)
+    try:
+        nodes = [n for n in ray.nodes() if n.get("Alive")]
+        sees = ray.remote(num_cpus=0, max_retries=0)(_sees)
+        refs = {n["NodeManagerAddress"]: sees.options(scheduling_strategy=NodeAffinitySchedulingStrategy(
+            n["NodeID"], soft=False)).remote(str(token_file), token) for n in nodes}
+        ready, _ = ray.wait(list(refs.values()), num_returns=len(refs), timeout=CHECK_SECONDS)
+        blind = []
+        for address, ref in refs.items():
+            if ref not in ready:
+                blind.append(f"{address} (no answer in {CHECK_SECONDS:g} s)")
+                continue
+            try:
+                ok, host = ray.get(ref)
+            except Exception as e:                          # (e.g. mi-gaussians is not installed on that node)
+                blind.append(f"{address} ({type(e).__name__})")
+                continue
+            if not ok:
+                blind.append(f"{host} ({address})")
+    finally:
+        with contextlib.suppress(OSError):
+            token_file.unlink()
+    if blind:
+        raise ValueError(f"{folder}: not seen by {len(blind)} of the cluster's {len(nodes)} nodes: "
+                         f"{', '.join(blind)}; the output folder must be on a file system every node mounts at the "
+                         "same path")
+
+
+def setup_worker(variant: str) -> int:
+    """In a Ray task or actor: select the Mitsuba ``variant`` and give Dr.Jit as many threads as the task has CPUs;
+    returns that number."""
+    import drjit as dr
+    import mitsuba as mi
+
+    import ray
+
+    if mi.variant() != variant:
+        mi.set_variant(variant)        # (importing this package installed the plugins for every variant)
+
+    cpus = ray.get_runtime_context().get_assigned_resources().get("CPU", 1.0)
+    threads = max(1, int(round(cpus)))
+    if variant.startswith("llvm"):
+        dr.set_thread_count(threads)
+    os.environ["OMP_NUM_THREADS"] = str(threads)
+    return threads
+
+
+def task_error_line(e) -> str:
+    """The one-line message of the exception a Ray task raised (``RayTaskError`` wraps it with its traceback)."""
+    cause = getattr(e, "cause", None) or e
+    lines = [ln.strip() for ln in str(cause).splitlines() if ln.strip()]
+    text = " ".join(lines[:3]) if lines else type(cause).__name__
+    return text if isinstance(cause, (ValueError, OSError)) else f"{type(cause).__name__}: {text}"

@@ -1,0 +1,190 @@
+"""``mi-gs sweep``: every run of a spec (:mod:`.sweep_spec`) as a Ray task writing an ordinary run folder,
+``OUT/runs/<name>/`` (readable by ``mi-gs eval`` and ``view``), and the table of their results (:mod:`.results`).
+
+No work is lost: runs checkpoint; a task whose worker dies (a killed process, a lost node) is run again by Ray
+(``retries``) and resumes from its checkpoint; a sweep run again on the same OUT skips the finished runs and resumes
+the others; a run that fails for a reason of its own (a bad dataset, a diverged loss) is recorded as failed with its
+one-line message, and the others go on. The scene files' references are rendered first, by Ray workers, into
+``OUT/references`` (shared by the runs of a scene). With ``address``, the cluster's nodes must see OUT at the same
+path (checked before anything starts).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+from typing import Callable
+
+from .. import run_folder
+from ..config import TrainConfig, setting_items
+from ..io_utils import atomic_write_bytes
+from . import results as results_table
+from .ray_cluster import check_shared_folder, cluster_cpus, connected, setup_worker, task_error_line
+from .sweep_spec import PlannedRun, SweepSpec
+
+RUNS = "runs"
+REFERENCES = "references"
+SPEC = "spec.toml"
+
+
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def differences(a: TrainConfig, b: TrainConfig) -> list[str]:
+    """The settings in which two runs differ, beyond how often they checkpoint and evaluate (which do not change
+    what a run computes)."""
+    a = dataclasses.replace(a, checkpoint_every=b.checkpoint_every, eval_every=b.eval_every)
+    return [f"{k} {x!r} -> {y!r}" for (k, x), (_, y) in zip(setting_items(a), setting_items(b)) if x != y]
+
+
+def finished(run: PlannedRun, folder: Path) -> dict | None:
+    """The metrics of ``run`` when its folder holds it finished (the same settings, all its iterations), else None."""
+    import json
+
+    try:
+        record = run_folder.RunRecord.read(folder, "missing")
+        metrics = json.loads((folder / run_folder.METRICS).read_text())
+    except (ValueError, OSError):
+        return None
+    if differences(record.train, run.config) or metrics.get("iterations") != run.config.optim.iterations:
+        return None
+    return metrics
+
+
+def train_task(run: PlannedRun, folder: str, cache: str, variant: str) -> dict:
+    """A Ray task: ``run`` in ``folder``, resumed from its checkpoint when an earlier attempt left one (the worker
+    of that attempt died). Returns its status, metrics and the iteration it resumed at; a failure of the run's own
+    is returned as its one-line message (not raised: Ray must not run it again)."""
+    from ..errors import one_line
+    from ..runs import train_run
+
+    setup_worker(variant)
+    folder = Path(folder)
+    try:
+        record = None
+        if run_folder.holds_run(folder):
+            record = run_folder.RunRecord.read(folder, "missing")
+            differ = differences(record.train, run.config)
+            if differ:
+                raise ValueError(f"{folder}: holds a run with other settings ({'; '.join(differ[:3])})")
+        result = train_run(run.dataset, folder, run.config, record, cache=cache, progress=False, log=None)
+        return {"status": "done", "metrics": result.metrics, "resumed_at": result.resumed_from}
+    except (ValueError, OSError, RuntimeError) as e:         # (TrainingDiverged is a RuntimeError)
+        return {"status": "failed", "error": one_line(e)}
+
+
+def _check_folders(spec: SweepSpec, out: Path, overwrite: bool) -> None:
+    """Before anything is written: the run folders in OUT hold these runs (or nothing), unless ``overwrite``."""
+    for run in spec.runs:
+        folder = out / RUNS / run.name
+        if overwrite or not (folder / run_folder.CONFIG).exists():
+            continue
+        try:
+            record = run_folder.RunRecord.read(folder, "missing")
+        except ValueError as e:
+            raise ValueError(f"{e} (--overwrite starts every run again)") from None
+        differ = differences(record.train, run.config)
+        if differ:
+            raise ValueError(f"{folder}: holds a run with other settings than {spec.path} gives it "
+                             f"({'; '.join(differ[:3])}{' ...' if len(differ) > 3 else ''}); --overwrite starts every "
+                             "run again, or give another output folder")
+
+
+def _render_references(ray, spec: SweepSpec, runs, out: Path, variant: str, progress: bool, log) -> None:
+    """The references of the runs' scene files, rendered by Ray workers into OUT/references (each reference set
+    once: the runs of a scene with the same rig share it)."""
+    from ..runs import training_dataset
+    from .references import RayFarm
+
+    seen = set()
+    workers = max(1, cluster_cpus(ray))
+    for run in runs:
+        if not run.scene_file:
+            continue
+        cfg = run.config
+        key = (run.dataset, cfg.scene, cfg.data.seed, cfg.data.test_every)
+        if key in seen:
+            continue
+        seen.add(key)
+        only_refs = dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, init="random", init_points=1))
+        farm = RayFarm(run.dataset, cfg.scene.defines, variant, workers=workers)
+        training_dataset(run.dataset, only_refs, out, cache=str(out / REFERENCES), progress=progress, farm=farm,
+                         log=log)
+
+
+def run_sweep(spec: SweepSpec, out: str | Path, variant: str, address: str | None = None, overwrite: bool = False,
+              progress: bool = True, log: Callable[[str], None] = _stderr) -> list[dict]:
+    """Every run of ``spec`` in ``out`` (see the module docstring); returns the result rows in the spec's order
+    (also written to OUT/results.csv and OUT/results.md)."""
+    from tqdm import tqdm
+
+    out = Path(out)
+    _check_folders(spec, out, overwrite)
+    with run_folder.RunLock(out):                     # (one sweep per output folder)
+        atomic_write_bytes(out / SPEC, spec.path.read_bytes())
+        if overwrite:
+            for run in spec.runs:
+                if (out / RUNS / run.name).is_dir():
+                    run_folder.clear_run(out / RUNS / run.name)
+            for name in ("results.csv", "results.md"):
+                (out / name).unlink(missing_ok=True)
+        rows = {}
+        for run in spec.runs:
+            metrics = finished(run, out / RUNS / run.name)
+            if metrics is not None:
+                rows[run.name] = results_table.row(run, "done", metrics)
+        todo = [run for run in spec.runs if run.name not in rows]
+        if rows:
+            log(f"{len(rows)} of {len(spec.runs)} runs finished earlier in {out / RUNS}: not trained again")
+
+        def write():
+            results_table.write(out, [rows[r.name] for r in spec.runs if r.name in rows], spec.grid_keys,
+                                f"Sweep {spec.path.name}")
+
+        if todo:
+            with connected(address) as ray:
+                if address:
+                    check_shared_folder(ray, out)
+                _render_references(ray, spec, todo, out, variant, progress, log)
+                task = ray.remote(max_calls=1)(train_task).options(num_cpus=spec.cpus, num_gpus=spec.gpus,
+                                                                  max_retries=spec.retries, retry_exceptions=False)
+                cache = str(out / REFERENCES)
+                refs = {task.remote(run, str(out / RUNS / run.name), cache, variant): run for run in todo}
+                bar = tqdm(total=len(spec.runs), initial=len(rows), unit="run", desc="sweep", disable=not progress,
+                           dynamic_ncols=True)
+                pending = list(refs)
+                try:
+                    while pending:
+                        ready, pending = ray.wait(pending, num_returns=1)
+                        for ref in ready:
+                            run = refs[ref]
+                            rows[run.name] = _collect(ray, ref, run, spec.retries)
+                            r = rows[run.name]
+                            psnr = "n/a" if r["psnr"] is None else f"{r['psnr']:.2f}"
+                            line = (f"{run.name}: PSNR {psnr}" if r["status"] == "done" else
+                                    f"{run.name}: failed: {r['error']}")
+                            bar.update(1)
+                            if r["status"] == "done":
+                                bar.set_postfix(PSNR=psnr, refresh=False)
+                            (bar.write if progress else log)(line)
+                            write()
+                finally:
+                    bar.close()
+        write()
+        return [rows[r.name] for r in spec.runs]
+
+
+def _collect(ray, ref, run: PlannedRun, retries: int) -> dict:
+    """The result row of a finished task."""
+    try:
+        got = ray.get(ref)
+    except ray.exceptions.RayTaskError as e:           # (a bug, not the run's own failure: recorded as well)
+        return results_table.row(run, "failed", error=task_error_line(e))
+    except ray.exceptions.RayError as e:
+        return results_table.row(run, "failed", error=f"its worker died {retries + 1} times "
+                                                      f"({type(e).__name__}); run the sweep again to resume it")
+    if got["status"] != "done":
+        return results_table.row(run, "failed", error=got["error"])
+    return results_table.row(run, "done", got["metrics"], resumed_at=got["resumed_at"])
