@@ -1,23 +1,86 @@
-"""Atomic file output: write to a temporary file in the target folder, then rename over the target."""
+"""Atomic file output: write to a temporary file in the target folder, then rename over the target.
+
+A temporary file is named ``.<target name>.<PID>-<8 random characters>.tmp<extension>``: a process killed while
+writing leaves one behind, and :func:`remove_stale_temporary_files` removes those whose process is gone (never a file
+of another name, never one of a live process). An error while writing names the target, not the temporary file.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import errno as _errno
 import os
+import re
 import tempfile
+
+# ".<name>.<pid>-<8 characters from mkstemp>.tmp<ext>"; earlier versions wrote ".<name>.<8 characters>.tmp<ext>"
+_TEMPORARY = re.compile(r"^\..+\.(?:(?P<pid>\d+)-)?[A-Za-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?$")
+
+
+def is_temporary_file(name: str) -> bool:
+    """Whether ``name`` is that of a temporary file of :func:`atomic_path` (this version's or an earlier one's)."""
+    return _TEMPORARY.match(name) is not None
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:           # (another user's live process)
+        return True
+    return True
+
+
+def remove_stale_temporary_files(folder: str | os.PathLike, unowned: bool = False) -> list[str]:
+    """Remove the temporary files in ``folder`` (not below it) whose writing process has ended; ``unowned``: also
+    those of earlier versions, which do not name their process (only when the caller knows no other process writes
+    there, e.g. it holds the folder's lock). Returns the removed paths."""
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    for entry in entries:
+        m = _TEMPORARY.match(entry.name)
+        if m is None or not entry.is_file(follow_symlinks=False):
+            continue
+        pid = m.group("pid")
+        if (pid is None and not unowned) or (pid is not None and (int(pid) == os.getpid() or _alive(int(pid)))):
+            continue
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(entry.path)
+            removed.append(entry.path)
+    return removed
+
+
+def _naming(e: OSError, target: str) -> OSError:
+    """``e`` as an OSError naming ``target`` (the file being written), not the temporary file; a short write
+    (NumPy's "N requested and M written") says what it most likely is."""
+    text = e.strerror or str(e)
+    m = re.search(r"(\d+) requested and (\d+) written", str(e))
+    if m:
+        return OSError(e.errno or _errno.ENOSPC, f"could not be written completely ({m.group(1)} bytes to write, "
+                                                 f"{m.group(2)} written: is the disk full?)", target)
+    return OSError(e.errno, text, target)
 
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None):
-    """Yield a temporary path next to ``path``; on success rename it onto ``path``, on error remove it.
+    """Yield a temporary path next to ``path``; on success rename it onto ``path``, on error remove it. Renaming
+    replaces a symbolic link at ``path`` itself, never the file it points to.
 
     ``suffix`` keeps the extension that format writers look at (e.g. ``.exr``); defaults to the target's."""
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    if suffix is None:
-        suffix = os.path.splitext(path)[1]
-    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".tmp" + suffix, dir=folder)
+    try:
+        os.makedirs(folder, exist_ok=True)
+        if suffix is None:
+            suffix = os.path.splitext(path)[1]
+        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.{os.getpid()}-", suffix=".tmp" + suffix,
+                                   dir=folder)
+    except OSError as e:
+        raise _naming(e, path) from None
     os.close(fd)
     umask = os.umask(0)   # mkstemp creates 0600; give the file the permissions a plain open() would
     os.umask(umask)
@@ -25,9 +88,13 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None):
     try:
         yield tmp
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(FileNotFoundError):
             os.remove(tmp)
+        if isinstance(e, OSError):
+            raise _naming(e, path) from None
+        if isinstance(e, (RuntimeError, ValueError)) and tmp in str(e):     # (e.g. OpenEXR's errors)
+            raise type(e)(str(e).replace(tmp, path)) from None
         raise
 
 

@@ -37,7 +37,19 @@ def write_view_outputs(out_dir: Path, scores, color_space: str) -> None:
 
 
 def write_json(path: Path, data: dict) -> None:
-    atomic_write_text(path, json.dumps(data, indent=2) + "\n")
+    """``data`` as JSON (atomically); a non-finite number (a PSNR of identical images) is written as null, which
+    JSON readers accept, where ``Infinity`` is not JSON."""
+    atomic_write_text(path, json.dumps(_finite(data), indent=2, allow_nan=False) + "\n")
+
+
+def _finite(x):
+    if isinstance(x, float) and not np.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    return x
 
 
 def plot_curves(path: Path, history: dict) -> None:

@@ -9,9 +9,8 @@ file in ``references/`` (kept when a run is cleared).
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
-import re
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,19 +28,12 @@ COMPARE = "compare"
 EVAL = "eval.json"
 GAUSSIAN_SCENE = "gaussians.xml"
 REFERENCES = "references"
+#: The names a run writes at the top of its folder (how a folder of an earlier version, without a Manifest, is read)
 RUN_OUTPUTS = (CHECKPOINTS, RENDERS, COMPARE, CONFIG, METRICS, EVAL, HISTORY, CURVES, GAUSSIAN_SCENE, MODEL)
 _SAVED_MODELS = "point_cloud_*.ply"       # the models of TrainConfig.save_iterations
 
 LOCK = ".mi-gs.lock"
-# io_utils.atomic_path's temporary files (".<name>.<8 random characters from mkstemp>.tmp<ext>"), left behind when a
-# process was killed while writing; looked for only in the folders a run writes
-_TEMPORARY = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?$")
-_WRITTEN_FOLDERS = ("", CHECKPOINTS, RENDERS, COMPARE)
-
-
-def is_temporary_file(name: str) -> bool:
-    """Whether ``name`` is that of an interrupted atomic write's temporary file (``io_utils.atomic_path``)."""
-    return _TEMPORARY.match(name) is not None
+_WRITTEN_FOLDERS = ("", CHECKPOINTS, RENDERS, COMPARE)     # (where a run's temporary files may be left)
 
 
 def saved_model(step: int) -> str:
@@ -69,14 +61,12 @@ class RunLock:
 
         self.out.mkdir(parents=True, exist_ok=True)
         path = self.out / LOCK
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        fd = _open_lock(path, os.O_RDWR | os.O_CREAT)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            holder = os.pread(fd, 64, 0).decode("ascii", "replace").strip() or "unknown"
             os.close(fd)
-            raise FolderBusy(f"{self.out}: another mi-gs process (PID {holder}) is using this output folder; "
-                             "wait for it to end or choose another folder") from None
+            raise self._busy(fd_path=path) from None
         try:
             same = os.fstat(fd).st_ino == os.stat(path).st_ino
         except FileNotFoundError:
@@ -88,6 +78,31 @@ class RunLock:
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         self._fd = fd
         return self
+
+    def _busy(self, fd_path: Path) -> "FolderBusy":
+        try:
+            holder = fd_path.read_text(errors="replace").strip() or "unknown"
+        except OSError:
+            holder = "unknown"
+        return FolderBusy(f"{self.out}: another mi-gs process (PID {holder}) is using this output folder; wait for "
+                          "it to end or choose another folder")
+
+    def check_free(self) -> None:
+        """:class:`FolderBusy` when a live process holds the folder's lock (nothing is created or taken): asked
+        first, so that a folder in use is described as such, not by what it holds."""
+        import fcntl
+
+        path = self.out / LOCK
+        try:
+            fd = _open_lock(path, os.O_RDONLY)
+        except FileNotFoundError:
+            return
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise self._busy(fd_path=path) from None
+        finally:
+            os.close(fd)
 
     def release_and_remove_if_empty(self) -> None:
         """Release the lock; first, while still holding it, remove the folder if it holds nothing but the lock
@@ -113,20 +128,31 @@ class RunLock:
         self.release()
 
 
+def _open_lock(path: Path, flags: int) -> int:
+    """The lock file, never through a symbolic link planted in its place."""
+    try:
+        return os.open(path, flags | os.O_NOFOLLOW, 0o666)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise ValueError(f"{path}: is a symbolic link; mi-gs does not lock through links (remove it)") from None
+        raise
+
+
 def remove_temporary_files(out: Path) -> list[Path]:
-    """Remove the temporary files of interrupted atomic writes from a run folder (call with its lock held); the
-    removed paths."""
+    """Remove the temporary files of interrupted writes from a run folder (call with its lock held: no other process
+    writes there, so earlier versions' files, which do not name their process, go too) and from its references
+    cache (those of processes that have ended: another run may share the cache); the removed paths."""
+    from .io_utils import remove_stale_temporary_files
+
     removed = []
     for sub in _WRITTEN_FOLDERS:
-        folder = Path(out) / sub
-        if not folder.is_dir():
-            continue
-        for p in folder.iterdir():
-            if is_temporary_file(p.name) and p.is_file():
-                with contextlib.suppress(FileNotFoundError):
-                    p.unlink()
-                    removed.append(p)
-    return removed
+        removed += remove_stale_temporary_files(Path(out) / sub, unowned=True)
+    refs = Path(out) / REFERENCES
+    if refs.is_dir() and not refs.is_symlink():
+        for key in refs.iterdir():
+            for sub in ("", "train", "test"):
+                removed += remove_stale_temporary_files(key / sub)
+    return [Path(p) for p in removed]
 
 
 def holds_run(out: Path) -> bool:
@@ -142,16 +168,123 @@ def check_new_run(out: Path, overwrite: bool) -> None:
                          "again, or another folder)")
 
 
-def clear_run(out: Path) -> None:
-    """Remove an earlier run's outputs from ``out`` (cached references stay)."""
-    for name in RUN_OUTPUTS:
-        p = out / name
-        if p.is_dir():
-            shutil.rmtree(p)
-        elif p.exists():
-            p.unlink()
-    for p in out.glob(_SAVED_MODELS):
-        p.unlink()
+def run_outputs(cfg: TrainConfig, view_names, scene_file: bool) -> list[str]:
+    """Every file and folder (relative to the run folder) a run of ``cfg`` writes, its views being ``view_names``
+    (those it renders at the end) and ``scene_file`` whether it trains on a Mitsuba scene (``gaussians.xml``)."""
+    stems = [Path(n).stem for n in view_names]
+    out = [CONFIG, CHECKPOINTS, CHECKPOINT, MODEL, METRICS, HISTORY, CURVES, RENDERS, COMPARE]
+    out += [saved_model(i) for i in cfg.save_iterations if i < cfg.optim.iterations]
+    out += [f"{RENDERS}/{s}{ext}" for s in stems for ext in (".exr", ".png")] + [f"{COMPARE}/{s}.png" for s in stems]
+    return out + ([GAUSSIAN_SCENE] if scene_file else [])
+
+
+class Manifest:
+    """What the runs in a folder wrote: ``.mi-gs-manifest.json``, the files and folders (relative paths) a run
+    claimed before it wrote them. A run writes only where nothing is, or where the manifest says a run of this folder
+    wrote; ``--overwrite`` removes exactly what the manifest lists (never following a symbolic link; a folder only
+    once nothing else is left in it); anything else in the folder is the user's and is left alone.
+
+    A run folder of an earlier version (a valid ``config.json`` and a checkpoint, no manifest) is taken as it is:
+    its outputs by their names (the cached references included)."""
+
+    FILE = ".mi-gs-manifest.json"
+
+    def __init__(self, out: Path):
+        import json
+
+        self.out = Path(out)
+        self.path = self.out / self.FILE
+        try:
+            data = json.loads(self.path.read_text())
+            self.entries = set(data["created"]) if isinstance(data.get("created"), list) else set()
+        except (OSError, ValueError, TypeError, KeyError):
+            self.entries = self._earlier_run()
+
+    def _earlier_run(self) -> set[str]:
+        """The outputs of a run of an earlier version of mi-gs (which wrote no manifest), or nothing."""
+        try:
+            RunRecord.read(self.out, "missing")
+        except ValueError:
+            return set()
+        if not (self.out / CHECKPOINT).is_file():
+            return set()
+        found = {n for n in (*RUN_OUTPUTS, REFERENCES) if _real(self.out / n)}
+        found |= {p.name for p in self.out.glob(_SAVED_MODELS) if _real(p)}
+        for folder in (CHECKPOINTS, RENDERS, COMPARE):
+            if folder in found:
+                found |= {f"{folder}/{p.name}" for p in (self.out / folder).iterdir() if _real(p) and p.is_file()}
+        return found
+
+    def owns(self, rel: str) -> bool:
+        return rel in self.entries
+
+    def check_free(self, rels) -> None:
+        """Each of ``rels`` is absent or was written by a run of this folder (and is no symbolic link): ValueError
+        naming the first that is not."""
+        for rel in rels:
+            p = self.out / rel
+            if p.is_symlink():
+                raise ValueError(f"{p}: is a symbolic link, where mi-gs would write; mi-gs neither writes through "
+                                 "nor removes links (move it away, or choose another output folder)")
+            if os.path.lexists(p) and not self.owns(rel):
+                raise ValueError(f"{p}: exists and was not written by mi-gs (no run of this folder lists it); mi-gs "
+                                 "writes its outputs there: move it away, or choose another output folder")
+
+    def claim(self, rels) -> None:
+        """Record ``rels`` as written by a run of this folder (atomically, before they are written)."""
+        import json
+
+        from .io_utils import atomic_write_text
+
+        new = self.entries | set(rels)
+        if new != self.entries or not self.path.is_file():
+            self.entries = new
+            atomic_write_text(self.path, json.dumps({"created": sorted(new)}, indent=1) + "\n")
+
+    def remove_outputs(self, keep=(REFERENCES,)) -> list[str]:
+        """Remove what the manifest lists (but ``keep`` and what lies below it): files that are files (no links),
+        then folders left empty, deepest first. Returns the removed paths (relative)."""
+        import json
+
+        from .io_utils import atomic_write_text
+
+        removed = []
+        for rel in sorted(self.entries, key=lambda r: (-r.count("/"), r)):
+            if any(rel == k or rel.startswith(k + "/") for k in keep):
+                continue
+            p = self.out / rel
+            try:
+                if p.is_symlink() or not p.exists():
+                    pass
+                elif p.is_dir():
+                    p.rmdir()                 # (only once empty: a file of the user's keeps it)
+                else:
+                    p.unlink()
+                removed.append(rel)
+            except OSError:
+                continue
+        self.entries -= set(removed)
+        atomic_write_text(self.path, json.dumps({"created": sorted(self.entries)}, indent=1) + "\n")
+        return removed
+
+
+    def discard_if_unused(self) -> None:
+        """Remove the manifest (and the empty folders it lists) when the run wrote nothing else: a run refused
+        after its claim leaves no trace."""
+        if not self.path.is_file():
+            return
+        for rel in sorted(self.entries, key=lambda r: -r.count("/")):
+            p = self.out / rel
+            if p.is_dir() and not p.is_symlink() and not any(p.iterdir()):
+                p.rmdir()
+            elif os.path.lexists(p):
+                return
+        self.path.unlink()
+
+
+def _real(p: Path) -> bool:
+    """``p`` exists and is not a symbolic link."""
+    return p.exists() and not p.is_symlink()
 
 
 @dataclass(frozen=True)
@@ -202,7 +335,7 @@ class RunRecord:
         try:
             train = TrainConfig.from_dict(saved["train"])
         except SettingError as e:
-            raise ValueError(f"{path}: key 'train.{e.key}': {e.problem}") from None
+            raise ValueError(f"{path}: key {'train.' + e.key!r}: {e.problem}") from None
         return cls(saved["dataset"], train, saved.get("dataset_fingerprint"), saved.get("references"))
 
     @property

@@ -10,7 +10,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,17 +39,64 @@ class RunResult:
     watcher: object = None
 
 
+class Stopped(Exception):
+    """A run stopped by a signal (:func:`stopping_on_signals`): ``step`` is the iteration of the checkpoint it wrote,
+    None when it stopped before training began (nothing to resume: the references rendered so far are kept)."""
+
+    def __init__(self, signum: int, step: int | None):
+        self.signum, self.step = signum, step
+        super().__init__(f"stopped by signal {signum}")
+
+
+STOP_SIGNALS = ("SIGTERM", "SIGINT", "SIGHUP")
+
+
+@contextlib.contextmanager
+def stopping_on_signals():
+    """While a run goes on, SIGTERM, SIGINT and SIGHUP (what Slurm, Kubernetes, Ray, Ctrl-C and a closed terminal
+    send) stop it cleanly: during training it finishes the iteration, writes a checkpoint and raises
+    :class:`Stopped` with its iteration; before training it raises at once (every file is written atomically). A
+    second signal ends the process at once (status 128 + the signal), which loses nothing either. Yields the object
+    whose ``trainer`` attribute :func:`train_run` sets. The main thread only; the handlers before are restored."""
+    import signal
+
+    class State:
+        trainer = None
+        signum = None
+
+    state = State()
+
+    def handler(signum, frame):
+        if state.signum is not None:
+            os._exit(128 + signum)
+        state.signum = signum
+        if state.trainer is None:
+            raise Stopped(signum, None)
+        state.trainer.stop_signal = signum
+
+    signums = [getattr(signal, name) for name in STOP_SIGNALS if hasattr(signal, name)]
+    before = {s: signal.signal(s, handler) for s in signums}
+    try:
+        yield state
+    finally:
+        for s, h in before.items():
+            signal.signal(s, h)
+
+
 def train_run(src: str | Path, out: str | Path, cfg: TrainConfig, record: RunRecord | None = None,
               overwrite: bool = False, cache: str | None = None, progress: bool = True,
-              watch: Callable | None = None, farm=None, log: Callable[[str], None] | None = _stderr) -> RunResult:
+              watch: Callable | None = None, farm=None, log: Callable[[str], None] | None = _stderr,
+              stop=None) -> RunResult:
     """Train one run of ``cfg`` on ``src`` in the folder ``out``: a new one, or the run whose ``record`` is given
     (resumed from its checkpoint). The folder is locked for the run (one run per folder; a second process gets
     ``FolderBusy``). Everything is checked (references rendered, every image decoded, a resumed run's dataset
     unchanged) before an earlier run's outputs are touched; ``overwrite`` then removes them. ``watch(trainer, ds)``,
     when given, returns an object whose ``training_monitor`` the trainer calls between iterations and whose
     ``close()`` is called when the run fails (the viewer). ``farm``: renders a scene file's missing references
-    elsewhere (see :mod:`mi_gaussians.cluster.references`). A diverged run raises ``TrainingDiverged``."""
+    elsewhere (see :mod:`mi_gaussians.cluster.references`). ``stop``: the state of :func:`stopping_on_signals`
+    (a signal then stops the run with :class:`Stopped`). A diverged run raises ``TrainingDiverged``."""
     out = Path(out)
+    check_outside_dataset(src, out)
     created = not out.exists()
     lock = RunLock(out)
     lock.acquire()                                # before anything is written into the folder
@@ -55,22 +104,40 @@ def train_run(src: str | Path, out: str | Path, cfg: TrainConfig, record: RunRec
         from .run_folder import remove_temporary_files
 
         remove_temporary_files(out)
-        return _train_locked(Path(src), out, cfg, record, overwrite, cache, progress, watch, farm, log)
-    except BaseException:
+        return _train_locked(Path(src), out, cfg, record, overwrite, cache, progress, watch, farm, log, stop)
+    except BaseException as e:
         if created:                               # (a run refused before it wrote anything leaves no folder)
+            from .run_folder import Manifest
+
+            Manifest(out).discard_if_unused()
             lock.release_and_remove_if_empty()
+        if stop is not None and stop.signum is not None and not isinstance(e, Stopped):
+            # (raised by the handler inside a Mitsuba or Dr.Jit call, which wrapped it in an error of its own)
+            raise Stopped(stop.signum, None) from None
         raise
     finally:
         lock.release()
 
 
-def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cache, progress, watch, farm,
-                  log) -> RunResult:
-    from . import run_folder
-    from .data.dataset import check_trainable_size, fingerprint, verify_images
-    from .optim.trainer import Trainer
+def check_outside_dataset(src: str | Path, out: str | Path, what: str = "-o") -> None:
+    """``out`` does not lie in the dataset folder ``src`` (whose files a run reads): ValueError otherwise."""
+    src, target = Path(src).resolve(), Path(out).resolve()
+    if src.is_dir() and (target == src or src in target.parents):
+        raise ValueError(f"{what} {out}: lies in the dataset folder {src}, which is read, never written: choose a "
+                         "folder outside it")
 
+
+def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cache, progress, watch, farm,
+                  log, stop) -> RunResult:
+    from .data.dataset import check_trainable_size, fingerprint, verify_images
+    from .optim.trainer import Trainer, TrainingStopped
+    from .run_folder import REFERENCES, Manifest, run_outputs
+
+    manifest = Manifest(out)
     cache = cache or (record.references_cache(out) if record else None)
+    if is_scene_file(src) and references_root(out, cache) == out / REFERENCES:
+        manifest.check_free([REFERENCES])
+        manifest.claim([REFERENCES])                  # (before the references are rendered into it)
     ds = training_dataset(src, cfg, out, cache=cache, progress=progress,
                           expect_key=record.references_key if record else None, farm=farm, log=log)
     check_trainable_size(ds)
@@ -78,13 +145,23 @@ def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cac
     if record is not None:
         check_resumed_dataset(src, out, record, digest, log)
     verify_images(ds.test, progress=progress)
+    planned = run_outputs(cfg, [v.name for v in (ds.test or ds.train[:1])], ds.layout == "mitsuba")
+    manifest.check_free(planned)                      # (a user's file where the run would write: refused)
     trainer = Trainer(ds, cfg, out, progress=progress)     # (decodes the training images)
     watcher = watch(trainer, ds) if watch is not None else None
+    if stop is not None:
+        stop.trainer = trainer                        # (from now on a signal lets the iteration finish)
+        if stop.signum is not None:
+            trainer.stop_signal = stop.signum
     try:
         if overwrite:
-            run_folder.clear_run(out)
-        metrics = trainer.run(resume=record is not None, fingerprint=digest,
-                              monitor=None if watcher is None else watcher.training_monitor)
+            manifest.remove_outputs()
+        manifest.claim(planned)
+        try:
+            metrics = trainer.run(resume=record is not None, fingerprint=digest,
+                                  monitor=None if watcher is None else watcher.training_monitor)
+        except TrainingStopped as e:
+            raise Stopped(e.signum, e.step) from None
         if ds.layout == "mitsuba":
             from .plugins.scene_xml import write_gaussian_scene
 

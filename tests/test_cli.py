@@ -160,9 +160,15 @@ def test_run_folder(tmp_path):
     with pytest.raises(ValueError, match="holds an earlier run"):
         rf.check_new_run(out, overwrite=False)
     rf.check_new_run(out, overwrite=True)
-    rf.clear_run(out)
+    manifest = rf.Manifest(out)
+    assert not manifest.entries                          # (no record: nobody's run, nothing of it is ours)
+    manifest.claim(["checkpoints", "checkpoints/ckpt.npz", "point_cloud.ply", "point_cloud_7000.ply", "config.json",
+                    "references"])
+    (out / "notes.txt").write_text("the user's")
+    assert sorted(rf.Manifest(out).remove_outputs()) == ["checkpoints", "checkpoints/ckpt.npz", "config.json",
+                                                         "point_cloud.ply", "point_cloud_7000.ply"]
     assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()) == \
-        ["references/abc/train/x.exr"]
+        [".mi-gs-manifest.json", "notes.txt", "references/abc/train/x.exr"]
     from mi_gaussians.config import TrainConfig
 
     record = rf.RunRecord("/data", TrainConfig(), references="/moved/away/abc")

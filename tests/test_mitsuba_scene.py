@@ -454,7 +454,7 @@ def test_runs_find_their_references(tmp_path):
     assert (run_dir / "point_cloud.ply").is_file() and (run_dir / "checkpoints" / "ckpt.npz").is_file()
     # the scene changed: resume and eval are refused before anything is rendered
     write_scene(p, w=24, h=24, spp=4, sky="0.1, 0.1, 0.1")
-    assert_one_line_error(run("eval", run_dir), "changed")
+    assert_one_line_error(run("eval", run_dir, "--overwrite"), "changed")
     assert_one_line_error(run("optimize", p, "-o", run_dir, "--resume"), "changed")
     assert len(list((tmp_path / "refs").iterdir())) == 1
 

@@ -319,14 +319,37 @@ def test_transforms_arbitrary_bytes(blender_root, raw):
 
 
 # ---------------------------------------------------------------------------------------------------- camera JSON
-CAMERA_FIELDS = {"width": mostly(st.integers(1, 5000), st.integers(-2, 0) | NUMBER_LIKE),
-                 "height": mostly(st.integers(1, 5000), st.integers(-2, 0) | NUMBER_LIKE),
+def _rigid(q, t, perturb):
+    """A world-to-camera matrix from a quaternion and a translation, optionally made not rigid (scaled, sheared,
+    mirrored, a wrong last row)."""
+    from mi_gaussians.data.colmap import quaternion_to_matrix
+
+    q = np.asarray(q, np.float64)
+    m = np.eye(4)
+    m[:3, :3] = quaternion_to_matrix(q / np.linalg.norm(q)) if np.linalg.norm(q) > 1e-3 else np.eye(3)
+    m[:3, 3] = t
+    if perturb == "scale":
+        m[:3, :3] *= 1.01
+    elif perturb == "shear":
+        m[0, 1] += 0.05
+    elif perturb == "mirror":
+        m[:3, 0] *= -1
+    elif perturb == "last row":
+        m[3, 0] = 0.5
+    return m.tolist()
+
+
+RIGID = st.builds(_rigid, st.lists(st.floats(-1, 1), min_size=4, max_size=4), st.lists(st.floats(-5, 5), min_size=3,
+                                                                                        max_size=3),
+                  mostly(st.just(None), st.sampled_from(["scale", "shear", "mirror", "last row"])))
+CAMERA_FIELDS = {"width": mostly(st.integers(1, 5000), st.integers(-2, 0) | st.floats(1, 9) | NUMBER_LIKE),
+                 "height": mostly(st.integers(1, 5000), st.integers(-2, 0) | st.floats(1, 9) | NUMBER_LIKE),
                  "fx": mostly(st.floats(0.1, 100), NUMBER_LIKE), "fy": mostly(st.floats(0.1, 100), NUMBER_LIKE),
                  "cx": mostly(st.floats(-10, 100), NUMBER_LIKE), "cy": mostly(st.floats(-10, 100), NUMBER_LIKE),
-                 "world_to_camera": mostly(st.lists(st.lists(st.floats(-2, 2), min_size=4, max_size=4), min_size=4,
-                                                    max_size=4),
-                                           st.lists(st.lists(st.floats(-2, 2) | NUMBER_LIKE, min_size=3, max_size=5),
-                                                    min_size=3, max_size=5) | NUMBER_LIKE)}
+                 "world_to_camera": mostly(RIGID, st.lists(st.lists(st.floats(-2, 2), min_size=4, max_size=4),
+                                                           min_size=4, max_size=4)
+                                           | st.lists(st.lists(st.floats(-2, 2) | NUMBER_LIKE, min_size=3, max_size=5),
+                                                      min_size=3, max_size=5) | NUMBER_LIKE)}
 
 
 @SETTINGS
@@ -338,6 +361,67 @@ def test_camera_json_arbitrary(work, doc):
     c = load_or_refused(Camera.from_json, p)
     if c is None:
         return
+    event("accepted")
     assert isinstance(c.width, int) and isinstance(c.height, int) and c.width >= 1 and c.height >= 1
+    assert c.width == doc["width"] and c.height == doc["height"]          # (never rounded: 12.5 is refused)
     assert all(math.isfinite(x) for x in (c.fx, c.fy, c.cx, c.cy)) and c.fx > 0 and c.fy > 0
     assert np.all(np.isfinite(c.world_to_camera)) and c.world_to_camera.shape == (4, 4)
+    r = c.world_to_camera[:3, :3]                                          # a rigid camera, nothing else
+    assert np.allclose(r @ r.T, np.eye(3), atol=1e-4) and abs(np.linalg.det(r) - 1) < 1e-4
+    assert np.allclose(c.world_to_camera[3], [0, 0, 0, 1])
+
+
+# ---------------------------------------------------------------------------------------------------- config.json
+def _field_values(value):
+    """Values for one setting: mostly its own type (the default, or another of the kind), else arbitrary JSON."""
+    if isinstance(value, bool):
+        valid = st.booleans()
+    elif isinstance(value, int):
+        valid = st.integers(-3, 40_000)
+    elif isinstance(value, float):
+        valid = st.floats(-1, 10, allow_nan=False)
+    elif isinstance(value, str):
+        valid = st.sampled_from([value, "default", "mcmc", "cube", "frustum", "auto", "shapes", "nope"])
+    elif isinstance(value, (tuple, list)):
+        valid = st.lists(st.floats(0, 1) | st.integers(0, 9000), max_size=4)
+    else:
+        valid = st.none() | st.integers(16, 600)
+    return mostly(st.just(value) | valid, ANY_JSON)
+
+
+def _config_docs():
+    from mi_gaussians.config import TrainConfig
+
+    base = TrainConfig().to_dict()
+    return st.fixed_dictionaries({}, optional={
+        k: (st.fixed_dictionaries({}, optional={f: _field_values(v) for f, v in sub.items()}) | ANY_JSON)
+        if isinstance(sub, dict) else _field_values(sub) for k, sub in base.items()})
+
+
+@SETTINGS
+@given(doc=_config_docs())
+def test_config_json_arbitrary(work, doc):
+    """A hand-edited config.json: every field any JSON value. It is read as exactly what it says (each value of its
+    field's type and in its range, nothing converted: "false" is not true, 300.0 not 300) or refused in one line
+    naming the file and the key; never a traceback."""
+    from mi_gaussians.config import TrainConfig
+    from mi_gaussians.run_folder import RunRecord
+
+    folder = work / "record"
+    folder.mkdir(exist_ok=True)
+    (folder / "config.json").write_text(json.dumps({"dataset": "/data", "train": doc}))
+    try:
+        record = RunRecord.read(folder, "missing")
+    except ValueError as e:
+        assert_one_line_error(e, folder / "config.json")
+        assert "key " in str(e) or "training settings" in str(e), str(e)
+        return
+    event("accepted")
+    got = json.loads(json.dumps(record.train.to_dict()))
+    want = json.loads(json.dumps(TrainConfig().to_dict()))
+    for k, v in doc.items():
+        if isinstance(v, dict):
+            want[k].update(v)
+        else:
+            want[k] = v
+    assert got == json.loads(json.dumps(want)) and record.train.validate() is record.train

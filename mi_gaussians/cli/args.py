@@ -134,11 +134,35 @@ def viewer_config(args):
 
 
 def start_viewer(viewer, args) -> None:
-    """Start serving; an address that cannot be served is the user's input error."""
+    """Start serving; an address that cannot be served is the user's input error, and one beyond this machine is
+    served with a warning (the viewer has no authentication)."""
     try:
         viewer.start()
     except OSError as e:
         raise InputError(f"--host {args.host} --port {args.port}: cannot serve there ({e.strerror or e})") from None
+    if not is_loopback(args.host):
+        import socket
+
+        from .errors import warn
+
+        warn(f"--host {args.host}: the viewer serves the model, its cameras and reference images to every machine "
+             f"that can reach this one, without authentication (they open http://{socket.gethostname()}:{args.port};"
+             " --host 127.0.0.1 keeps it on this machine)")
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` names this machine only (127.0.0.0/8, ::1, localhost)."""
+    import ipaddress
+    import socket
+
+    try:
+        addresses = {info[4][0] for info in socket.getaddrinfo(host, None)}
+    except socket.gaierror:
+        return False
+    try:
+        return all(ipaddress.ip_address(a.split("%")[0]).is_loopback for a in addresses)
+    except ValueError:
+        return False
 
 
 # ------------------------------------------------------------------------------------------------------ checks

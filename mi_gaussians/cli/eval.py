@@ -12,12 +12,14 @@ def add_parser(sub) -> None:
     s = sub.add_parser("eval", help="recompute the metrics of a saved run on its test views")
     s.add_argument("run", help="an mi-gs optimize output folder")
     s.add_argument("--dataset", default=None, help="dataset folder (default: the one the run was trained on)")
+    s.add_argument("--overwrite", action="store_true", help="replace the run's eval.json")
 
 
 def run(args) -> int:
     from .. import run_folder
 
     out = Path(args.run)
+    run_folder.RunLock(out).check_free()            # (a run still writing its folder: said so, before anything else)
     for p in (out / run_folder.CONFIG, out / run_folder.MODEL):
         if not p.exists():
             raise InputError(f"{p}: missing (is {out} an mi-gs optimize output folder?)")
@@ -33,6 +35,10 @@ def _evaluate(args, out: Path, record) -> int:
     from ..report import write_json
     from ..runs import run_dataset
 
+    manifest = run_folder.Manifest(out)
+    if (out / run_folder.EVAL).exists() and not args.overwrite:
+        raise InputError(f"{out / run_folder.EVAL}: exists (give --overwrite to replace it)")
+    manifest.check_free([run_folder.EVAL])
     ds = run_dataset(record, out, args.dataset)
     views = ds.test if ds.test else ds.train
     g = Gaussians.load_ply(out / run_folder.MODEL)
@@ -42,6 +48,7 @@ def _evaluate(args, out: Path, record) -> int:
     note = report.pop("lpips_note", None)
     result = {"split": "test" if ds.test else "train", **report, "gaussians": g.n,
               **({"lpips_note": note} if note else {})}
+    manifest.claim([run_folder.EVAL])
     write_json(out / run_folder.EVAL, result)
     print(json.dumps({"output": str(out / run_folder.EVAL), **result["mean"], "gaussians": g.n,
                       **({"lpips_note": note} if note else {})}, indent=2))

@@ -24,7 +24,7 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from ..io_utils import check_output_file
+    from ..io_utils import check_output_file, remove_stale_temporary_files
     from ..model.web_formats import drop_sh_bands, read_model, write_model
     from ..runs import model_raster_config
 
@@ -41,6 +41,9 @@ def run(args) -> int:
     if out.exists() and out.resolve() == src.resolve():
         raise InputError(f"{out}: is the input model")
     params, _ = read_model(src)
+    if len(params["means"]) == 0:
+        raise InputError(f"{src}: the model has no Gaussians (nothing to export)")
+    remove_stale_temporary_files(out.parent if str(out.parent) else ".")
     if args.sh_degree is not None:
         params = drop_sh_bands(params, args.sh_degree)
     if out.suffix.lower() == ".splat" and params["sh_rest"].shape[1]:

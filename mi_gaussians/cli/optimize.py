@@ -40,7 +40,7 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     from ..io_utils import check_output_folder
     from ..optim.trainer import TrainingDiverged
-    from ..runs import train_run
+    from ..runs import Stopped, stopping_on_signals, train_run
 
     out = Path(args.output)
     src = existing(args.scene)
@@ -49,18 +49,37 @@ def run(args) -> int:
     _check_workers(args, src)
     watch = (lambda trainer, ds: _training_view(args, trainer, ds, cfg)) if args.view else None
     try:
-        with _farm(args, src, cfg) as farm:
+        with stopping_on_signals() as stop, _farm(args, src, cfg) as farm:
             result = train_run(src, out, cfg, record, overwrite=args.overwrite, cache=args.cache,
-                               progress=not args.quiet, watch=watch, farm=farm)
+                               progress=not args.quiet, watch=watch, farm=farm, stop=stop)
     except TrainingDiverged as e:
         print(f"mi-gs: error: {e}", file=sys.stderr)
         return EXIT_DIVERGED
+    except Stopped as e:
+        print(f"mi-gs: {_stopped_line(e, args, src, out)}", file=sys.stderr, flush=True)
+        return 128 + e.signum
     metrics = result.metrics
     print(json.dumps({"output": str(out), **metrics["mean"], "gaussians": metrics["gaussians"],
                       "training_seconds": metrics["training_seconds"]}, indent=2), flush=True)
     if result.watcher is not None and result.watcher.viewer is not None:
         _serve_until_stopped(result.watcher)
     return 0
+
+
+def _stopped_line(e, args, src: Path, out: Path) -> str:
+    import shlex
+    import signal
+
+    from ..run_folder import CHECKPOINT
+
+    name = signal.Signals(e.signum).name
+    if e.step is None:
+        return (f"stopped by {name} before training began (nothing to resume; the same command starts again, reusing "
+                "the references rendered so far)")
+    again = ["mi-gs", "optimize", str(src), "-o", str(out), "--resume"] + (["--cache", args.cache] if args.cache
+                                                                              else [])
+    return (f"stopped by {name} at iteration {e.step}, saved in {out / CHECKPOINT}; continue with: "
+            f"{shlex.join(again)}")
 
 
 def _check_workers(args, src: Path) -> None:
@@ -96,6 +115,7 @@ def _config(args, src: Path, out: Path):
         raise InputError("give at most one of --resume and --overwrite")
     if args.resume and args.settings:
         raise InputError("--set cannot change a run being resumed (its settings are in OUTDIR/config.json)")
+    run_folder.RunLock(out).check_free()            # (a folder in use is described as such, not by what it holds)
     if args.resume:
         record = run_folder.RunRecord.read(out, "nothing to resume (no config.json in the output folder)")
         return train_options.resumed_config(args, record.train, is_scene_file(src), str(out / run_folder.CONFIG)), \

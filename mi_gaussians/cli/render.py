@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from .args import (add_background, add_define, add_model_input, add_output, background, existing, is_model,
@@ -21,7 +22,7 @@ def add_parser(sub) -> None:
     s.add_argument("--camera", help="camera JSON (see README)")
     s.add_argument("--dataset", help="dataset folder whose views to render")
     s.add_argument("--split", choices=("train", "test", "all"), default="test")
-    add_output(s, "output .exr/.png file, or folder with --dataset")
+    add_output(s, "output .exr/.png file, or folder with --dataset", overwrite="replace existing output files")
     s.add_argument("-r", "--resolution", type=positive_int, default=None,
                    help=f"with --dataset: divide its image size by this (default {DataConfig().resolution})")
     add_background(s, "background colour (1 or 3 values)")
@@ -50,7 +51,7 @@ def run(args) -> int:
                          "image size)")
     from ..data.camera import Camera
 
-    outputs = _outputs_for(out)
+    outputs = _outputs_for(out, args.overwrite)
     cam = Camera.from_json(args.camera)
     _render_views(args, [(cam.name or "view", cam)], args.color_space, [outputs])
     print(out)
@@ -78,14 +79,23 @@ def _render_views(args, views, color_space: str, out_paths) -> None:
             write_image(p, rgb, color_space)
 
 
-def _outputs_for(path: Path) -> list[Path]:
-    from ..io_utils import check_output_file
+def _outputs_for(path: Path, overwrite: bool) -> list[Path]:
+    from ..io_utils import check_output_file, remove_stale_temporary_files
 
     ext = path.suffix.lower()
     if ext not in (".exr", ".png"):
         raise InputError(f"{path}: unsupported output format {ext or '(none)'} (use .exr or .png)")
     check_output_file(path)
+    _check_new([path], overwrite)
+    remove_stale_temporary_files(path.parent)
     return [path]
+
+
+def _check_new(paths, overwrite: bool) -> None:
+    """Outputs are not written over existing files (or links) unless ``--overwrite`` says so."""
+    for p in paths:
+        if os.path.lexists(p) and not overwrite:
+            raise InputError(f"{p}: exists (give --overwrite to replace it)")
 
 
 def _render_scene_file(args, src: Path, out: Path) -> int:
@@ -99,7 +109,7 @@ def _render_scene_file(args, src: Path, out: Path) -> int:
     if args.antialiased is not None:
         raise InputError(f"--{'' if args.antialiased else 'no-'}antialiased applies to a .ply; in a scene .xml the "
                          "gaussian_splatting integrator's antialiased parameter decides")
-    outputs = _outputs_for(out)
+    outputs = _outputs_for(out, args.overwrite)
     scene = load_file(src, args.define)
     if not scene.sensors():
         raise InputError(f"{src}: the scene has no sensor")
@@ -116,8 +126,10 @@ def _render_dataset_views(args, out: Path) -> int:
     """A model rendered from the views of a dataset folder into the folder ``out`` (EXR and PNG per view)."""
     from ..config import DataConfig
     from ..data.dataset import load_dataset
-    from ..io_utils import check_output_folder
+    from ..io_utils import check_output_folder, remove_stale_temporary_files
+    from ..runs import check_outside_dataset
 
+    check_outside_dataset(args.dataset, out)
     ds = load_dataset(args.dataset, resolution=args.resolution or DataConfig().resolution,
                       background=background(args.background))
     views = {"train": ds.train, "test": ds.test, "all": ds.views}[args.split]
@@ -126,8 +138,10 @@ def _render_dataset_views(args, out: Path) -> int:
     if out.suffix:
         raise InputError(f"{out}: with --dataset, -o names an output folder")
     check_output_folder(out)
-    out.mkdir(parents=True, exist_ok=True)
     paths = [[out / f"{Path(v.name).stem}.exr", out / f"{Path(v.name).stem}.png"] for v in views]
+    _check_new([p for ps in paths for p in ps], args.overwrite)
+    out.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporary_files(out)
     _render_views(args, [(v.name, v.camera) for v in views], ds.color_space, paths)
     print(f"{len(views)} views -> {out}")
     return 0

@@ -42,6 +42,8 @@ def run(args) -> int:
     if args.background is not None:
         bg = background(args.background)
     g = Gaussians.load(model)
+    if g.n == 0:
+        raise InputError(f"{model}: the model has no Gaussians (nothing to look at)")
     initial = Camera.from_json(args.camera) if args.camera else None
     if initial is None and not views:
         initial = default_camera(g)

@@ -127,7 +127,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, variant: str, address: str | Non
         if overwrite:
             for run in spec.runs:
                 if (out / RUNS / run.name).is_dir():
-                    run_folder.clear_run(out / RUNS / run.name)
+                    run_folder.Manifest(out / RUNS / run.name).remove_outputs()
             for name in ("results.csv", "results.md"):
                 (out / name).unlink(missing_ok=True)
         rows = {}

@@ -57,6 +57,23 @@ def _as_matrix(m, what: str) -> np.ndarray:
     return a
 
 
+#: How far a camera JSON's rotation may be from orthonormal (max |R R^T - I|, |det R - 1|): JSON written with
+#: 6 significant digits passes, a scaled or sheared matrix does not.
+RIGID_TOLERANCE = 1e-4
+
+
+def _check_rigid(m: np.ndarray, what: str) -> None:
+    r = m[:3, :3]
+    off = float(np.abs(r @ r.T - np.eye(3)).max())
+    det = float(np.linalg.det(r))
+    if off > RIGID_TOLERANCE or abs(det - 1.0) > RIGID_TOLERANCE:
+        kind = "a reflection" if det < 0 else "not a rotation (scaled or sheared)"
+        raise ValueError(f"{what}: the upper-left 3x3 is {kind}: |R R^T - I| = {off:.3g}, det R = {det:.6g} (a "
+                         "rigid world-to-camera matrix is needed)")
+    if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=RIGID_TOLERANCE):
+        raise ValueError(f"{what}: the last row must be 0 0 0 1, got {' '.join(f'{v:g}' for v in m[3])}")
+
+
 @dataclass(frozen=True)
 class Camera:
     """A pinhole camera: intrinsics in pixels, extrinsics as a world-to-camera matrix in OpenCV axes."""
@@ -127,12 +144,32 @@ class Camera:
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "camera") -> "Camera":
+        """A camera from the fields of a camera JSON, each checked (ValueError naming ``source`` and the field):
+        whole positive sizes, finite positive focal lengths, a finite principal point, and a rigid
+        ``world_to_camera`` (a rotation: orthonormal with determinant +1 to :data:`RIGID_TOLERANCE`, a finite
+        translation, a last row 0 0 0 1)."""
         missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy", "world_to_camera") if k not in d]
         if missing:
             raise ValueError(f"{source}: missing camera field(s) {', '.join(missing)}")
+        for k in ("width", "height"):
+            v = d[k]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not float(v).is_integer() or v < 1:
+                raise ValueError(f"{source}: {k} must be a whole number of pixels >= 1, got {json.dumps(v)[:40]}")
+        for k in ("fx", "fy", "cx", "cy"):
+            v = d[k]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ValueError(f"{source}: {k} must be a finite number, got {json.dumps(v)[:40]}")
+        name = d.get("name", "")
+        if not isinstance(name, str):
+            raise ValueError(f"{source}: name must be a string, got {json.dumps(name)[:40]}")
         try:
-            return cls(width=d["width"], height=d["height"], fx=d["fx"], fy=d["fy"], cx=d["cx"], cy=d["cy"],
-                       world_to_camera=d["world_to_camera"], name=str(d.get("name", "")))
+            m = _as_matrix(d["world_to_camera"], "world_to_camera")
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{source}: {e}") from None
+        _check_rigid(m, f"{source}: world_to_camera")
+        try:
+            return cls(width=int(d["width"]), height=int(d["height"]), fx=d["fx"], fy=d["fy"], cx=d["cx"],
+                       cy=d["cy"], world_to_camera=m, name=name)
         except (TypeError, ValueError) as e:
             raise ValueError(f"{source}: {e}") from None
 

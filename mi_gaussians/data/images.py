@@ -1,7 +1,8 @@
 """Image files -> float32 arrays: read (PNG/JPEG/EXR), composite RGBA, downsample, undistort.
 
 Values are kept in the file's own encoding, like the reference 3DGS loader: PNG/JPEG give ``value / 255`` (sRGB-encoded,
-*not* linearized; 16-bit PNG ``value / 65535``), EXR gives linear floats. A dataset's ``color_space`` says which.
+*not* linearized; 16-bit PNG ``value / 65535`` at full precision, through pypng where Pillow would keep 8 bits), EXR
+gives linear floats. A dataset's ``color_space`` says which.
 
 Alpha: PNG alpha is straight (un-premultiplied, as in NeRF-synthetic): ``rgb * a + bg * (1 - a)``. EXR alpha is
 premultiplied (OpenEXR's convention, and what Mitsuba writes): ``rgb + bg * (1 - a)``. A separate mask file (white =
@@ -63,6 +64,8 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     path = os.fspath(path)
     if color_space_of(path) == "linear":
         return _read_exr(path)
+    if _png_16_bit_colour(path):
+        return _read_png_16(path)
     from PIL import Image, UnidentifiedImageError
 
     try:
@@ -84,6 +87,31 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     except (UnidentifiedImageError, OSError, SyntaxError) as e:   # (Pillow: SyntaxError for a broken PNG chunk)
         raise ValueError(f"{path}: not a readable image ({e})") from None
     return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+def _png_16_bit_colour(path: str) -> bool:
+    """Whether ``path`` is a PNG of 16 bits per sample with colour or alpha (Pillow would cut it to 8 bits)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(26)
+    except OSError:
+        return False
+    return head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR" and head[24] == 16 and head[25] in (2, 4, 6)
+
+
+def _read_png_16(path: str) -> np.ndarray:
+    """A 16-bit RGB, RGBA or grey + alpha PNG at full precision (pypng): (H, W, 3 or 4) float32 ``value / 65535``."""
+    import png
+
+    try:
+        width, height, rows, info = png.Reader(filename=path).asDirect()
+        a = np.vstack([np.asarray(r, dtype=np.uint16) for r in rows]).reshape(height, width, info["planes"])
+    except (png.Error, OSError, ValueError) as e:
+        raise ValueError(f"{path}: not a readable image ({e})") from None
+    a = a.astype(np.float32) / 65535.0
+    if info["greyscale"]:                        # (grey + alpha)
+        a = np.concatenate([np.repeat(a[..., :1], 3, axis=2), a[..., 1:]], axis=2)
+    return np.ascontiguousarray(a)
 
 
 def _read_exr(path: str) -> np.ndarray:

@@ -58,6 +58,15 @@ class TrainingDiverged(RuntimeError):
     """The loss or a parameter became NaN/Inf."""
 
 
+class TrainingStopped(Exception):
+    """The run was asked to stop (:attr:`Trainer.stop_signal`, e.g. by SIGTERM): it finished its iteration and wrote
+    a checkpoint at ``step``, from which ``--resume`` continues."""
+
+    def __init__(self, signum: int, step: int):
+        self.signum, self.step = signum, step
+        super().__init__(f"stopped at iteration {step} (signal {signum})")
+
+
 @dataclass
 class _Pending:
     """A queued frozen iteration: its view, the random streams' states before it (to replay it) and its device
@@ -132,13 +141,21 @@ class Trainer:
         self.history = History()
         self.step = 0
         self.resumed_from: int | None = None    # the checkpoint's iteration, when run(resume=True) continued one
+        self.stop_signal: int | None = None     # set (e.g. by a signal handler) to stop after the iteration running
         self.elapsed = 0.0        # training seconds (evaluation excluded)
         self.bg_rng = np.random.default_rng(cfg.seed + 1)
         self.sampler = ViewSampler(len(ds.train), cfg.seed)
         # Targets are decoded once and kept as Dr.Jit tensors (copied into Dr.Jit-owned memory). With a random
         # background, RGBA targets are re-composited over the same random colour each iteration (the reference
         # keeps them composited over the fixed one), so we also keep the coverage (1 - alpha).
-        self.targets = [owned_tensor(v.load_image()) for v in ds.train]
+        self.targets, brightest = [], 0.0
+        for v in ds.train:
+            image = v.load_image()
+            brightest = max(brightest, float(np.max(image, initial=0.0)))
+            self.targets.append(owned_tensor(image))
+        if brightest <= 1e-6:
+            raise ValueError(f"{ds.root}: every training image is black: there is nothing to fit (a scene whose "
+                             "lights are missing, hidden or turned off by its -D values?)")
         self.depth_targets = None
         if cfg.optim.depth_weight > 0:
             depths = [v.load_depth() for v in ds.train]
@@ -206,6 +223,10 @@ class Trainer:
         def section(prefix):
             return {k.split("/", 1)[1]: v for k, v in data.items() if k.startswith(prefix + "/")}
 
+        for k, v in data.items():
+            if k.split("/")[0] in ("param", "adam") and v.dtype.kind == "f" and not np.all(np.isfinite(v)):
+                raise ValueError(f"{path}: the checkpoint holds non-finite values ({k}); it cannot be resumed "
+                                 "(start a new run: --overwrite)")
         try:
             self.params = GaussianAdam(Gaussians.from_numpy(**section("param")), self.cfg.optim, self.extent)
             self.params.import_moments(section("adam"))
@@ -419,6 +440,8 @@ class Trainer:
         done = self.step                         # the last iteration whose evaluation / saving / checkpoint ran
         try:
             while self.step < total or self._pending:
+                if self.stop_signal is not None:
+                    self._stop()
                 if self.step < total:
                     self.advance()
                 else:
@@ -442,6 +465,13 @@ class Trainer:
             self._bar.close()
             self._bar = None
         return self.finish()
+
+    def _stop(self) -> None:
+        """Commit the queued iterations, write a checkpoint and raise :class:`TrainingStopped`."""
+        while self._pending:
+            self._resolve()
+        self.save_checkpoint()
+        raise TrainingStopped(self.stop_signal, self.step)
 
     def finish(self) -> dict:
         """Final outputs: PLY, test renders and comparisons, metrics.json, curves."""
