@@ -22,6 +22,8 @@ RANDOM_INITS = ("cube", "frustum")
 RIGS = ("auto", "sensors", "hemisphere", "sphere")
 #: ``SceneConfig.init``: the initial points of a Mitsuba scene.
 SCENE_INITS = ("shapes", "random", "sfm")
+#: ``OptimConfig.exposure``: per-image colour compensation ('affine': the 2024 reference's --train_test_exp).
+EXPOSURES = ("off", "affine")
 #: ``--depth-weight W`` decays from W to W / DEPTH_WEIGHT_DECAY (the 2024 reference's 1.0 to 0.01).
 DEPTH_WEIGHT_DECAY = 100.0
 
@@ -88,6 +90,10 @@ class OptimConfig:
     depth_weight: float = 0.0                # Mitsuba scenes: weight of the inverse-depth L1 against exact depth
     depth_weight_final: float = 0.0          # ... decaying exponentially to this over position_lr_max_steps (--depth-weight W:
                                              # W to W / DEPTH_WEIGHT_DECAY, the 2024 reference's 1.0 to 0.01)
+    exposure: str = "off"                    # --exposure: 'affine', a 3x4 colour transform per training image before
+                                             # the loss (EXPOSURES; optim/exposure.py)
+    exposure_lr_init: float = 0.01           # its Adam's rate, decaying exponentially over the run's iterations
+    exposure_lr_final: float = 0.001         # ... to this (the 2024 reference's values)
 
     def with_depth_weight(self, weight: float) -> "OptimConfig":
         """Depth supervision of weight ``weight`` decaying to ``weight / DEPTH_WEIGHT_DECAY`` (``--depth-weight``)."""
@@ -304,6 +310,7 @@ RULES: dict[str, "Range | tuple[str, ...]"] = {
     "data.background": Range(0),
     "optim.iterations": _COUNT, "optim.position_lr_max_steps": _COUNT, "optim.sh_degree": Range(0, 3),
     "optim.sh_increase_interval": _COUNT, "optim.lambda_dssim": _FRACTION, "optim.adam_eps": _POSITIVE,
+    "optim.exposure": EXPOSURES,
     "densify.densification_interval": _COUNT, "densify.opacity_reset_interval": _COUNT, "densify.split_count": _COUNT,
     "densify.split_scale_divisor": _POSITIVE, "densify.min_opacity": Range(0, 1, open_high=True),
     "densify.reset_opacity": _OPEN_FRACTION,

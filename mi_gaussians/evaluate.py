@@ -8,7 +8,7 @@ import numpy as np
 
 from .config import RasterConfig
 from .imwrite import display_encode
-from .metrics import lpips_available, lpips_vgg, psnr, ssim_np
+from .metrics import apply_affine, fit_affine, lpips_available, lpips_vgg, psnr, ssim_np
 from .model.gaussians import Gaussians
 from .raster.rasterize import render
 
@@ -29,21 +29,38 @@ def display(img: np.ndarray, color_space: str = "srgb") -> np.ndarray:
     return np.clip(display_encode(np.asarray(img, dtype=np.float32), color_space), 0.0, 1.0)
 
 
+#: The protocols a view is scored by: the whole image as rendered, or the 2024 reference's for exposure compensation.
+PROTOCOLS = {
+    "full": "the whole image, as rendered",
+    "half": "a 3x4 colour transform fitted by least squares on the left half of each view, then the right half "
+            "scored (the 2024 reference's --train_test_exp evaluation)",
+}
+
+
 def evaluate_views(g: Gaussians, views, background, sh_degree: int | None = None,
                    cfg: RasterConfig = RasterConfig(), keep_images: bool = False, with_lpips: bool = True,
-                   targets: dict | None = None, color_space: str = "srgb") -> tuple[list[ViewScore], str | None]:
+                   targets: dict | None = None, color_space: str = "srgb",
+                   protocol: str = "full") -> tuple[list[ViewScore], str | None]:
     """Scores per view and a note on LPIPS (None when it was computed).
 
     Metrics compare display images (:func:`display`): renders and references clipped to [0, 1] as the reference
     scores ``clamp(render, 0, 1)``; with ``color_space='linear'`` (models of linear radiance) both are sRGB-encoded
     first, so that PSNR means the same for a model trained on radiance and one trained on encoded values.
-    ``targets`` optionally maps view names to already-loaded images (avoids decoding them again)."""
+    ``targets`` optionally maps view names to already-loaded images (avoids decoding them again). ``protocol``: one
+    of :data:`PROTOCOLS` ('half': the colour transform is fitted in the colour space the model was trained in, as
+    the training-time transforms work)."""
+    if protocol not in PROTOCOLS:
+        raise ValueError(f"unknown evaluation protocol {protocol!r} (expected one of {', '.join(PROTOCOLS)})")
     use_lpips, note = lpips_available() if with_lpips else (False, "LPIPS not requested")
     scores = []
     for v in views:
         target = targets[v.name] if targets is not None and v.name in targets else v.load_image()
         img = np.array(render(g, v.camera, background=background, sh_degree=sh_degree, cfg=cfg).rgb,
                        dtype=np.float32).reshape(target.shape)
+        if protocol == "half":
+            half = target.shape[1] // 2
+            e = fit_affine(img[:, :half], target[:, :half, :3])
+            img, target = apply_affine(img[:, half:], e), target[:, half:]
         a, b = display(img, color_space), display(target, color_space)
         s = ViewScore(name=v.name, psnr=psnr(a, b), ssim=ssim_np(a, b), lpips=lpips_vgg(a, b) if use_lpips else None)
         if keep_images:

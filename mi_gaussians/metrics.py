@@ -77,7 +77,8 @@ def ssim_np(img, ref, clamp: bool = True) -> float:
     """Mean SSIM (the reference's 11 x 11 Gaussian window, sigma 1.5, zero padding), as the training loss computes it.
 
     Runs the training loss's Dr.Jit kernels (:func:`mi_gaussians.image_ops.ssim`) when a JIT Mitsuba variant is
-    active, so the metric and the loss agree; otherwise a float64 NumPy/SciPy port of the same formula (they agree to ~1e-6)."""
+    active, so the metric and the loss agree; otherwise a float64 NumPy/SciPy port of the same formula (they agree to
+    ~1e-6)."""
     a, b = _pair(img, ref, clamp)
     if a.ndim == 2:
         a, b = a[..., None], b[..., None]
@@ -170,3 +171,21 @@ def lpips_vgg(img, ref, clamp: bool = True, convention: str = "3dgs") -> float:
 
     with torch.no_grad():
         return float(model(tensor(a), tensor(b)).item())
+
+
+# ------------------------------------------------------------------------------------------ colour transforms
+def fit_affine(render: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """The 3 x 4 colour transform ``E`` minimizing the squared error of ``render @ E[:, :3] + E[:, 3]`` against
+    ``target`` over every pixel of the (..., 3) arrays (linear least squares in float64): the transform the 2024
+    reference's exposure compensation fits (``optim/exposure.py`` has the layout)."""
+    x = np.asarray(render, np.float64).reshape(-1, 3)
+    y = np.asarray(target, np.float64).reshape(-1, 3)
+    design = np.concatenate([x, np.ones((len(x), 1))], axis=1)
+    s, *_ = np.linalg.lstsq(design, y, rcond=None)        # (4, 3): s[k, j] weighs input channel k (then 1) in j
+    return np.concatenate([s[:3], s[3][:, None]], axis=1)
+
+
+def apply_affine(image: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """``image`` (..., 3) through the 3 x 4 transform ``e``: ``image @ e[:, :3] + e[:, 3]`` (float32)."""
+    e = np.asarray(e, np.float64)
+    return (np.asarray(image, np.float64) @ e[:, :3] + e[:, 3]).astype(np.float32)

@@ -26,10 +26,11 @@ CURVES = "curves.png"
 RENDERS = "renders"
 COMPARE = "compare"
 EVAL = "eval.json"
+EXPOSURE = "exposure.json"               # the training images' colour transforms (--exposure), name -> 3x4
 GAUSSIAN_SCENE = "gaussians.xml"
 REFERENCES = "references"
 #: The names a run writes at the top of its folder (how a folder of an earlier version, without a Manifest, is read)
-RUN_OUTPUTS = (CHECKPOINTS, RENDERS, COMPARE, CONFIG, METRICS, EVAL, HISTORY, CURVES, GAUSSIAN_SCENE, MODEL)
+RUN_OUTPUTS = (CHECKPOINTS, RENDERS, COMPARE, CONFIG, METRICS, EVAL, HISTORY, CURVES, GAUSSIAN_SCENE, MODEL, EXPOSURE)
 _SAVED_MODELS = "point_cloud_*.ply"       # the models of TrainConfig.save_iterations
 
 LOCK = ".mi-gs.lock"
@@ -175,7 +176,7 @@ def run_outputs(cfg: TrainConfig, view_names, scene_file: bool) -> list[str]:
     out = [CONFIG, CHECKPOINTS, CHECKPOINT, MODEL, METRICS, HISTORY, CURVES, RENDERS, COMPARE]
     out += [saved_model(i) for i in cfg.save_iterations if i < cfg.optim.iterations]
     out += [f"{RENDERS}/{s}{ext}" for s in stems for ext in (".exr", ".png")] + [f"{COMPARE}/{s}.png" for s in stems]
-    return out + ([GAUSSIAN_SCENE] if scene_file else [])
+    return out + ([GAUSSIAN_SCENE] if scene_file else []) + ([EXPOSURE] if cfg.optim.exposure != "off" else [])
 
 
 class Manifest:

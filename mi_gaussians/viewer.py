@@ -28,13 +28,13 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
 from .config import RasterConfig
 from .data.camera import Camera, focal_from_fov, fov_from_focal
 from .data.colmap import quaternion_to_matrix
+from .viewer_entries import ViewEntry
 
 RENDER_MODES = ("RGB", "Alpha", "Expected depth", "Gaussians per tile")
 
@@ -47,15 +47,6 @@ class ViewerConfig:
     moving_size: int = 256        # longest image side while the camera moves
     idle_seconds: float = 0.25    # a view unchanged this long is rendered at max_size
     jpeg_quality: int = 90
-
-
-@dataclass
-class ViewEntry:
-    """A camera of the model's dataset, with a loader of its reference image ((H, W, 3) display-encoded floats)."""
-
-    name: str
-    camera: Camera
-    reference: Callable[[], np.ndarray] | None = None
 
 
 class StaticModel:
@@ -157,38 +148,6 @@ def pose_of_camera(cam: Camera) -> tuple[np.ndarray, np.ndarray, float]:
     return _matrix_to_quat(R), -R @ cam.world_to_camera[:3, 3], fov_from_focal(cam.height, cam.fy)
 
 
-def default_camera(g) -> Camera:
-    """A camera looking along +z at a model's centre from 2.5 times its radius (90 % of the centres inside)."""
-    means = np.array(g.means, np.float64).reshape(-1, 3)
-    centre = np.median(means, axis=0)
-    radius = float(np.percentile(np.linalg.norm(means - centre, axis=1), 90)) or 1.0
-    w2c = np.eye(4)
-    w2c[:3, 3] = -(centre - [0.0, 0.0, 2.5 * radius])
-    return Camera(width=800, height=600, fx=600.0, fy=600.0, cx=400.0, cy=300.0, world_to_camera=w2c, name="default")
-
-
-def dataset_entries(ds) -> list[ViewEntry]:
-    """The camera list of a dataset's training and test views, each with its reference when the image exists."""
-    from pathlib import Path
-
-    return [ViewEntry(f"{kind} {v.name}", v.camera, v.load_image if Path(v.image_path).is_file() else None)
-            for kind, views in (("train", ds.train), ("test", ds.test)) for v in views]
-
-
-def run_entries(record, out, warn: Callable[[str], None]) -> tuple[list[ViewEntry], str, tuple]:
-    """(camera list, colour space, background) of the dataset the run in ``out`` (its ``RunRecord``) was trained
-    on. A scene file's references are not rendered again: views whose reference is gone are listed without a
-    picture. A dataset that cannot be loaded any more gives no cameras, and a line to ``warn``."""
-    from .runs import run_dataset
-
-    try:
-        ds = run_dataset(record, out, render_missing=False)
-    except (ValueError, OSError, RuntimeError) as e:
-        warn(f"the run's dataset cannot be loaded ({e}); viewing without its cameras")
-        return [], "srgb", tuple(record.train.data.background)
-    return dataset_entries(ds), ds.color_space, tuple(float(b) for b in ds.background)
-
-
 # ---------------------------------------------------------------------------------------------------- images
 def _turbo(x: np.ndarray) -> np.ndarray:
     from matplotlib import colormaps
@@ -197,9 +156,11 @@ def _turbo(x: np.ndarray) -> np.ndarray:
 
 
 def render_image(g, cam: Camera, mode: str = "RGB", sh_degree: int | None = None, background=(0.0, 0.0, 0.0),
-                 raster: RasterConfig = RasterConfig(), color_space: str = "srgb") -> np.ndarray:
+                 raster: RasterConfig = RasterConfig(), color_space: str = "srgb",
+                 exposure: np.ndarray | None = None) -> np.ndarray:
     """One frame of the viewer: (H, W, 3) uint8 of ``g`` seen by ``cam`` in render ``mode`` (see the module
-    docstring). RGB is display-encoded: a model trained on linear radiance is sRGB-encoded here."""
+    docstring). RGB is display-encoded: a model trained on linear radiance is sRGB-encoded here. ``exposure``: a
+    training view's colour transform (3 x 4), applied to RGB as the training applied it (before the encoding)."""
     import drjit as dr
 
     from .imwrite import linear_to_srgb
@@ -213,6 +174,10 @@ def render_image(g, cam: Camera, mode: str = "RGB", sh_degree: int | None = None
         out = render(g, cam, background=background, sh_degree=sh_degree, cfg=raster)
         if mode == "RGB":
             img = np.array(out.rgb, np.float32)
+            if exposure is not None:
+                from .metrics import apply_affine
+
+                img = apply_affine(img, exposure)
             img = linear_to_srgb(np.maximum(img, 0)) if color_space == "linear" else img
         elif mode == "Alpha":
             img = np.repeat(np.array(out.alpha, np.float32)[..., None], 3, axis=2)
@@ -270,6 +235,7 @@ class Viewer:
         self._clients: dict[int, _ClientState] = {}
         self._lock = threading.Lock()
         self._jump: dict[int, ViewEntry] = {}
+        self._chosen: ViewEntry | None = None      # the camera last chosen in the panel
         self.server = None
         self.frames = 0
 
@@ -342,13 +308,19 @@ class Viewer:
         names = ["(free)"] + [v.name for v in self.views]
         self._camera = gui.add_dropdown("Camera", names, initial_value="(free)", visible=bool(self.views))
         self._reference = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="Reference", visible=False)
+        self._exposure = gui.add_checkbox("Exposure of the chosen view", initial_value=False,
+                                          visible=any(v.exposure is not None for v in self.views),
+                                          hint="render through the colour transform --exposure fitted to this "
+                                               "training view (the model itself has none)")
         self._curves = None
 
         @self._camera.on_update
         def _(event) -> None:
+            entry = next((v for v in self.views if v.name == self._camera.value), None)
+            with self._lock:
+                self._chosen = entry
             if event.client is None:
                 return
-            entry = next((v for v in self.views if v.name == self._camera.value), None)
             if entry is not None:
                 with self._lock:
                     self._jump[event.client.client_id] = entry
@@ -397,7 +369,20 @@ class Viewer:
     # ------------------------------------------------------------------ rendering
     def _settings(self) -> tuple:
         bg = tuple(c / 255.0 for c in self._bg.value)
-        return (self._mode.value, int(self._sh.value), bg, int(self._max.value), int(self._moving.value))
+        chosen = self._chosen
+        exposure = (chosen.name if self._exposure.value and chosen is not None and chosen.exposure is not None
+                    else None)
+        return (self._mode.value, int(self._sh.value), bg, int(self._max.value), int(self._moving.value), exposure)
+
+    def render_frame(self, gaussians, cam: Camera, settings: tuple | None = None) -> np.ndarray:
+        """A frame (uint8) of ``gaussians`` from ``cam`` with the panel's settings (render mode, SH degree,
+        background, the chosen training view's exposure)."""
+        mode, sh, bg, _, _, exposure = settings or self._settings()
+        matrix = None
+        if exposure is not None:
+            entry = next((v for v in self.views if v.name == exposure), None)
+            matrix = None if entry is None or entry.exposure is None else np.asarray(entry.exposure(), np.float64)
+        return render_image(gaussians, cam, mode, sh, bg, self.raster, self.color_space, exposure=matrix)
 
     def poll(self, budget_seconds: float | None = None) -> int:
         """Render and send the frames clients are waiting for (a moving camera at the small size, a camera at rest
@@ -430,8 +415,7 @@ class Viewer:
             longest = min(settings[3], canvas) if at_rest and canvas > 0 else settings[3] if at_rest else settings[4]
             W, H = image_size(aspect, longest)
             start = time.perf_counter()
-            img = render_image(gaussians, camera_from_pose(wxyz, pos, fov, W, H), settings[0], settings[1],
-                               settings[2], self.raster, self.color_space)
+            img = self.render_frame(gaussians, camera_from_pose(wxyz, pos, fov, W, H), settings)
             client = self.server.get_clients().get(client_id)
             if client is None:
                 continue

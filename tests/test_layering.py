@@ -58,6 +58,7 @@ LAYERS: dict[str, float] = {
     "mi_gaussians.cluster": 5.5,
     "mi_gaussians.cli": 6,
     "mi_gaussians.viewer": 6,
+    "mi_gaussians.viewer_entries": 6,
     "mi_gaussians": 6,
 }
 

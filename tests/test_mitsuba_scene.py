@@ -275,7 +275,7 @@ def test_references_are_cached_and_keyed(tmp_path, monkeypatch):
     load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", progress=False)
     assert len(calls) == 1                              # only what is missing
     # the viewer's load renders nothing: the view whose reference is gone has no picture
-    from mi_gaussians.viewer import dataset_entries
+    from mi_gaussians.viewer_entries import dataset_entries
 
     files[0].unlink()
     ds = load_scene_dataset(p, cfg, cache_root=tmp_path / "refs", progress=False, render_missing=False)

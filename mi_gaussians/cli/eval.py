@@ -30,7 +30,7 @@ def run(args) -> int:
 
 def _evaluate(args, out: Path, record) -> int:
     from .. import run_folder
-    from ..evaluate import evaluate_views, scores_report
+    from ..evaluate import PROTOCOLS, evaluate_views, scores_report
     from ..model.gaussians import Gaussians
     from ..report import write_json
     from ..runs import run_dataset
@@ -46,10 +46,14 @@ def _evaluate(args, out: Path, record) -> int:
                                   color_space=ds.color_space)
     report = scores_report(scores, note)
     note = report.pop("lpips_note", None)
-    result = {"split": "test" if ds.test else "train", **report, "gaussians": g.n,
+    half, _ = evaluate_views(g, views, tuple(ds.background), cfg=record.train.raster, color_space=ds.color_space,
+                             protocol="half")
+    result = {"split": "test" if ds.test else "train", "protocol": PROTOCOLS["full"], **report,
+              "half_image": {"protocol": PROTOCOLS["half"], **scores_report(half)}, "gaussians": g.n,
               **({"lpips_note": note} if note else {})}
     manifest.claim([run_folder.EVAL])
     write_json(out / run_folder.EVAL, result)
-    print(json.dumps({"output": str(out / run_folder.EVAL), **result["mean"], "gaussians": g.n,
+    print(json.dumps({"output": str(out / run_folder.EVAL), **result["mean"],
+                      "half_image": result["half_image"]["mean"], "gaussians": g.n,
                       **({"lpips_note": note} if note else {})}, indent=2))
     return 0

@@ -126,10 +126,13 @@ def _config(args, src: Path, out: Path):
 
 def _training_view(args, trainer, ds, cfg):
     """The viewer of a run being trained (``--view``): a :class:`~mi_gaussians.viewer.TrainingView` serving."""
-    from ..viewer import TrainingView, Viewer, dataset_entries
+    from ..viewer import TrainingView, Viewer
+    from ..viewer_entries import dataset_entries
 
     live = TrainingView(trainer)
-    live.viewer = Viewer(live, dataset_entries(ds), viewer_config(args), raster=cfg.raster,
+    names = [v.name for v in ds.train]
+    exposure = None if trainer.exposure is None else (lambda: dict(zip(names, trainer.exposure.matrices())))
+    live.viewer = Viewer(live, dataset_entries(ds, exposure), viewer_config(args), raster=cfg.raster,
                          color_space=ds.color_space, background=tuple(ds.background),
                          title=f"mi-gs optimize {Path(args.output).name}")
     start_viewer(live.viewer, args)

@@ -11,8 +11,8 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Callable
 
-from ..config import (DEPTH_WEIGHT_DECAY, RIGS, SCENE_INITS, STRATEGIES, DataConfig, MCMCConfig, OptimConfig,
-                      SceneConfig, SettingError, TrainConfig)
+from ..config import (DEPTH_WEIGHT_DECAY, EXPOSURES, RIGS, SCENE_INITS, STRATEGIES, DataConfig, MCMCConfig,
+                      OptimConfig, SceneConfig, SettingError, TrainConfig)
 from .args import background, field_of_view, finite_float, non_negative_int, positive_float, positive_int, sh_degree
 from .errors import InputError
 
@@ -116,6 +116,12 @@ def options() -> list[Option]:
             "help": "scene .xml: add an inverse-depth L1 against the exact depth Mitsuba gives, weighted W at the "
                     f"start and decaying to W/{DEPTH_WEIGHT_DECAY:g} (the 2024 reference's schedule with W = 1)"},
                give=lambda cfg, w, _: dataclasses.replace(cfg, optim=cfg.optim.with_depth_weight(w))),
+        Option(("--exposure",), ("optim.exposure",), {
+            "nargs": "?", "const": "affine", "choices": tuple(e for e in EXPOSURES if e != "off"),
+            "help": "compensate each training image's exposure and white balance: a 3x4 colour transform per image "
+                    "applied to the render before the loss (the 2024 reference's --train_test_exp); saved in "
+                    "exposure.json, never in the model; the test views are then also scored the reference's way "
+                    "(fitted on their left half, scored on the right)"}),
         Option(("--strategy",), ("strategy",), {
             "choices": tuple(STRATEGIES),
             "help": "densification: 'default' (the paper's clone / split / prune) or 'mcmc' (3DGS as Markov Chain "

@@ -22,7 +22,8 @@ def run(args) -> int:
     from ..data.camera import Camera
     from ..model.gaussians import Gaussians
     from ..runs import model_raster_config
-    from ..viewer import StaticModel, Viewer, default_camera, run_entries
+    from ..viewer import StaticModel, Viewer
+    from ..viewer_entries import default_camera, run_entries
 
     src = existing(args.input)
     model = src / run_folder.MODEL if src.is_dir() else src

@@ -155,11 +155,7 @@ class GaussianAdam:
                 self._adam[key] = value
         rates = learning_rates(cfg, extent)
         self._adam.set_learning_rate({k: rates[k] for k in self.keys()})
-        for key in self.keys():
-            # Dr.Jit registers t as the literal 0, and literal + 1 stays a literal: the bias correction would be a
-            # new constant in some kernel on every step (a recompilation), and a literal input of a frozen step
-            value, promoted, lr, (t, m, v, vmax) = self._adam.state[key]
-            self._adam.state[key] = (value, promoted, lr, (dr.opaque(type(t), 0, 1), m, v, vmax))
+        opaque_step_counts(self._adam, self.keys())
 
     # ------------------------------------------------------------------ reading
     @property
@@ -219,20 +215,7 @@ class GaussianAdam:
         ``active``: a 1-element ``mi.Bool``; where it is False nothing changes -- values, moments AND the step count
         ``t`` (Dr.Jit's own ``active`` leaves ``t`` counting, a known issue it documents), so a masked step is no step.
         """
-        before = {key: self._adam.state[key] for key in self.keys()}
-        for key, (value, promoted, lr, extra) in before.items():
-            if dr.is_array_v(lr):
-                # Dr.Jit's learning-rate cache multiplies a rate held in an array in place (``scale *= factor``):
-                # give it a copy, so the rate we hold stays the rate that was set
-                self._adam.state[key] = (value, promoted, type(lr)(lr), extra)
-        self._adam.step(active=active, eval=False)
-        for key, (_, _, lr, (t_old, _, _, _)) in before.items():
-            value, promoted, _, (t, m, v, vmax) = self._adam.state[key]
-            if active is not None:
-                t = dr.select(active, t, t_old)
-                dr.schedule(t)
-            self._adam.state[key] = (value, promoted, lr, (t, m, v, vmax))
-        dr.eval()
+        masked_step(self._adam, self.keys(), active)
 
     def clear_grads(self) -> None:
         """Zero the gradient of every parameter (values and Adam state untouched)."""
@@ -386,41 +369,82 @@ class GaussianAdam:
         """The Adam state as NumPy arrays (for a checkpoint): ``<key>.t`` (uint32, shape (1,)), ``<key>.m`` and
         ``<key>.v`` (float32, the parameter's shape) and ``<key>.vmax`` when AMSGrad keeps one. Values and learning
         rates are not included (the model is saved with :attr:`gaussians`; rates come from the config)."""
-        out = {}
-        for key in self.keys():
-            value, _, _, (t, m, v, vmax) = self._adam.state[key]
-            shape = tuple(value.shape)
-            out[f"{key}.t"] = np.array(t, dtype=np.uint32).reshape(1)
-            out[f"{key}.m"] = np.array(m, dtype=np.float32).reshape(shape)
-            out[f"{key}.v"] = np.array(v, dtype=np.float32).reshape(shape)
-            if vmax is not None:
-                out[f"{key}.vmax"] = np.array(vmax, dtype=np.float32).reshape(shape)
-        return out
+        return export_state(self._adam, self.keys())
 
     def import_moments(self, arrays: Mapping[str, np.ndarray]) -> None:
         """Restore what :meth:`export_moments` wrote, for parameters of the same shapes. Raises KeyError on a
         missing entry and ValueError on a shape mismatch, before changing anything."""
-        new = {}
-        for key in self.keys():
-            value, _, _, (t, _, _, vmax) = self._adam.state[key]
-            shape = tuple(value.shape)
+        import_state(self._adam, self.keys(), arrays)
 
-            def load(name):
-                if name not in arrays:
-                    raise KeyError(f"{name!r} missing from the saved Adam state")
-                a = np.asarray(arrays[name], np.float32)
-                if a.shape != shape:
-                    raise ValueError(f"saved Adam state {name} has shape {a.shape}, the parameter has {shape}")
-                return owned_array(mi.Float, a)
 
-            if f"{key}.t" not in arrays:
-                raise KeyError(f"{key + '.t'!r} missing from the saved Adam state")
-            t_new = dr.opaque(type(t), int(np.asarray(arrays[f"{key}.t"]).reshape(-1)[0]), 1)
-            m, v = load(f"{key}.m"), load(f"{key}.v")
-            if vmax is not None:
-                vmax = load(f"{key}.vmax") if f"{key}.vmax" in arrays else dr.zeros(mi.Float, dr.width(m))
-            new[key] = (t_new, m, v, vmax)
-        for key, (t_new, m, v, vmax) in new.items():
-            value, promoted, lr, _ = self._adam.state[key]
-            dr.make_opaque(m, v)
-            self._adam.state[key] = (value, promoted, lr, (t_new, m, v, vmax))
+# ------------------------------------------------------------------ the optimizer state, for every owner of parameters
+def opaque_step_counts(adam, keys) -> None:
+    """Dr.Jit registers a parameter's step count ``t`` as the literal 0, and literal + 1 stays a literal: the bias
+    correction would be a new constant in some kernel on every step (a recompilation), and a literal input of a
+    frozen step. Make each an opaque value."""
+    for key in keys:
+        value, promoted, lr, (t, m, v, vmax) = adam.state[key]
+        adam.state[key] = (value, promoted, lr, (dr.opaque(type(t), 0, 1), m, v, vmax))
+
+
+def masked_step(adam, keys, active=None) -> None:
+    """``adam.step()`` where the 1-element ``mi.Bool`` ``active`` leaves everything as it was when False -- values,
+    moments AND the step count ``t`` (Dr.Jit's own ``active`` leaves ``t`` counting, a known issue it documents)."""
+    before = {key: adam.state[key] for key in keys}
+    for key, (value, promoted, lr, extra) in before.items():
+        if dr.is_array_v(lr):
+            # Dr.Jit's learning-rate cache multiplies a rate held in an array in place (``scale *= factor``): give it
+            # a copy, so the rate we hold stays the rate that was set
+            adam.state[key] = (value, promoted, type(lr)(lr), extra)
+    adam.step(active=active, eval=False)
+    for key, (_, _, lr, (t_old, _, _, _)) in before.items():
+        value, promoted, _, (t, m, v, vmax) = adam.state[key]
+        if active is not None:
+            t = dr.select(active, t, t_old)
+            dr.schedule(t)
+        adam.state[key] = (value, promoted, lr, (t, m, v, vmax))
+    dr.eval()
+
+
+def export_state(adam, keys) -> dict[str, np.ndarray]:
+    """The Adam state of ``keys`` as NumPy arrays: ``<key>.t`` (uint32, (1,)), ``<key>.m``, ``<key>.v`` (float32, the
+    parameter's shape) and ``<key>.vmax`` when AMSGrad keeps one."""
+    out = {}
+    for key in keys:
+        value, _, _, (t, m, v, vmax) = adam.state[key]
+        shape = tuple(value.shape)
+        out[f"{key}.t"] = np.array(t, dtype=np.uint32).reshape(1)
+        out[f"{key}.m"] = np.array(m, dtype=np.float32).reshape(shape)
+        out[f"{key}.v"] = np.array(v, dtype=np.float32).reshape(shape)
+        if vmax is not None:
+            out[f"{key}.vmax"] = np.array(vmax, dtype=np.float32).reshape(shape)
+    return out
+
+
+def import_state(adam, keys, arrays: Mapping[str, np.ndarray]) -> None:
+    """Restore what :func:`export_state` wrote, for parameters of the same shapes. Raises KeyError on a missing entry
+    and ValueError on a shape mismatch, before changing anything."""
+    new = {}
+    for key in keys:
+        value, _, _, (t, _, _, vmax) = adam.state[key]
+        shape = tuple(value.shape)
+
+        def load(name):
+            if name not in arrays:
+                raise KeyError(f"{name!r} missing from the saved Adam state")
+            a = np.asarray(arrays[name], np.float32)
+            if a.shape != shape:
+                raise ValueError(f"saved Adam state {name} has shape {a.shape}, the parameter has {shape}")
+            return owned_array(mi.Float, a)
+
+        if f"{key}.t" not in arrays:
+            raise KeyError(f"{key + '.t'!r} missing from the saved Adam state")
+        t_new = dr.opaque(type(t), int(np.asarray(arrays[f"{key}.t"]).reshape(-1)[0]), 1)
+        m, v = load(f"{key}.m"), load(f"{key}.v")
+        if vmax is not None:
+            vmax = load(f"{key}.vmax") if f"{key}.vmax" in arrays else dr.zeros(mi.Float, dr.width(m))
+        new[key] = (t_new, m, v, vmax)
+    for key, (t_new, m, v, vmax) in new.items():
+        value, promoted, lr, _ = adam.state[key]
+        dr.make_opaque(m, v)
+        adam.state[key] = (value, promoted, lr, (t_new, m, v, vmax))

@@ -3,7 +3,11 @@ command line's ``--strategy`` choices come from there); :data:`CLASSES` gives ea
 
 from __future__ import annotations
 
+import numpy as np
+
 from ..config import STRATEGIES, TrainConfig
+from ..data.dataset import Dataset
+from ..model.gaussians import Gaussians
 from .densify import DefaultStrategy
 from .mcmc import MCMCStrategy
 from .strategy import Strategy
@@ -17,3 +21,19 @@ def make_strategy(cfg: TrainConfig, extent: float, white_background: bool) -> St
     if cfg.strategy not in CLASSES:
         raise ValueError(f"unknown densification strategy {cfg.strategy!r} (expected one of {', '.join(STRATEGIES)})")
     return CLASSES[cfg.strategy].from_config(cfg, extent, white_background)
+
+
+def initial_gaussians(ds: Dataset, sh_degree: int, strategy: Strategy | None = None, seed: int = 0) -> Gaussians:
+    """The Gaussians a run starts from: the dataset's points with the strategy's initial opacity and scale factor,
+    subsampled (uniformly, ``seed``) to the strategy's bound on the number of Gaussians."""
+    if ds.points_xyz is None or len(ds.points_xyz) == 0:
+        raise ValueError(f"{ds.root}: the dataset has no initial points")
+    xyz, rgb = ds.points_xyz, ds.points_rgb
+    cap = None if strategy is None else strategy.max_gaussians
+    if cap is not None and len(xyz) > cap:
+        keep = np.sort(np.random.default_rng(seed).choice(len(xyz), size=cap, replace=False))
+        xyz, rgb = xyz[keep], rgb[keep]
+    if strategy is None:
+        return Gaussians.from_points(xyz, rgb, sh_degree=sh_degree)
+    return Gaussians.from_points(xyz, rgb, sh_degree=sh_degree, initial_opacity=strategy.init_opacity,
+                                 scale_factor=strategy.init_scale)

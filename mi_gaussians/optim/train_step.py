@@ -66,6 +66,8 @@ class StepInputs:
     step: "mi.UInt32"                     # the iteration (1 element; keys the strategy's per-iteration noise)
     depth_target: "mi.TensorXf | None" = None   # (H, W) inverse exact depth, 0 where no surface (depth loss)
     depth_weight: "mi.Float | None" = None      # this iteration's depth-loss weight (1 element)
+    view_index: "mi.UInt32 | None" = None       # the training view (1 element), whose exposure transform applies
+    exposure_lr: "mi.Float | None" = None       # this iteration's exposure learning rate (1 element)
 
 
 def composite_target(target, transparency, background, fixed_background) -> "mi.TensorXf":
@@ -80,11 +82,12 @@ def composite_target(target, transparency, background, fixed_background) -> "mi.
 
 
 def training_loss(out, target, lambda_dssim, strategy: Strategy, params: GaussianAdam, depth_target=None,
-                  depth_weight=None) -> "mi.Float":
+                  depth_weight=None, image=None) -> "mi.Float":
     """The loss an iteration minimizes, the one home of its assembly for the frozen step and the traced loop: the
-    photometric (L1 + D-SSIM) loss of render ``out`` against ``target``, the strategy's regularizers, and the depth
-    loss weighted by ``depth_weight`` where a ``depth_target`` is given."""
-    loss = photometric_loss(out.rgb, target, lambda_dssim)
+    photometric (L1 + D-SSIM) loss of render ``out`` (or of ``image``, the render through the view's exposure
+    transform) against ``target``, the strategy's regularizers, and the depth loss weighted by ``depth_weight``
+    where a ``depth_target`` is given."""
+    loss = photometric_loss(out.rgb if image is None else image, target, lambda_dssim)
     reg = strategy.regularization(params)
     if reg is not None:
         loss = loss + reg
@@ -107,13 +110,14 @@ class TrainStep:
         lam = float(lambda_dssim)
 
         def step(params: GaussianAdam, state, inputs: StepInputs, valid, sh_degree: int, update_state: bool,
-                 capacity: int, n: int):
+                 capacity: int, n: int, exposure):
             # (n, the number of Gaussians, is an argument so that a new count always makes a new recording)
             out = render(params.gaussians, inputs.view, background=inputs.background, sh_degree=sh_degree,
                          cfg=raster, capacity=capacity)
             strategy.step_pre_backward(params, state, None, out, collect=update_state)
             target = composite_target(inputs.target, inputs.transparency, inputs.background, fixed)
-            loss = training_loss(out, target, lam, strategy, params, inputs.depth_target, inputs.depth_weight)
+            image = None if exposure is None else exposure.apply(out.rgb, inputs.view_index)
+            loss = training_loss(out, target, lam, strategy, params, inputs.depth_target, inputs.depth_weight, image)
             dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
             ok = valid & out.fits & dr.isfinite(loss)
             if update_state:
@@ -121,6 +125,9 @@ class TrainStep:
             params.set_learning_rate("means", inputs.means_lr)
             params.step(active=ok)
             strategy.step_post_update(params, state, inputs.step, inputs.means_lr, active=ok)
+            if exposure is not None:
+                exposure.set_learning_rate(inputs.exposure_lr)
+                exposure.step(active=ok)
             return loss, ok, mi.UInt32(out.n_instances)
 
         # recordings are made when the model's size changes (densification), so many over a run: no warning
@@ -133,5 +140,6 @@ class TrainStep:
         return self._step.n_recordings if self.frozen else 0
 
     def __call__(self, params: GaussianAdam, state, inputs: StepInputs, valid, sh_degree: int, update_state: bool,
-                 capacity: int):
-        return self._step(params, state, inputs, valid, int(sh_degree), bool(update_state), int(capacity), params.n)
+                 capacity: int, exposure=None):
+        return self._step(params, state, inputs, valid, int(sh_degree), bool(update_state), int(capacity), params.n,
+                          exposure)

@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import drjit as dr
@@ -34,15 +34,16 @@ import numpy as np
 from ..config import TrainConfig
 from ..data.dataset import Dataset
 from ..drjit_utils import owned_tensor
-from ..evaluate import depth_error, evaluate_views, scores_report, summarize
+from ..evaluate import PROTOCOLS, depth_error, evaluate_views, scores_report, summarize
 from ..io_utils import atomic_path
 from ..model.gaussians import Gaussians
 from ..raster.projection import ViewParams
 from ..raster.rasterize import render
 from .. import report, run_folder
 from .adam import GaussianAdam
-from .strategies import make_strategy
-from .strategy import Strategy
+from .exposure import Exposure
+from .loop_state import History, ViewSampler
+from .strategies import initial_gaussians, make_strategy
 from .losses import inverse_depth_target
 from .schedules import expon_lr, sh_degree_at
 from .train_step import StepInputs, TrainStep, capacity_for, composite_target, training_loss
@@ -78,56 +79,6 @@ class _Pending:
     loss: "mi.Float"
     ok: "mi.Bool"
     instances: "mi.UInt32"
-
-
-@dataclass
-class History:
-    iteration: list = field(default_factory=list)
-    loss: list = field(default_factory=list)
-    gaussians: list = field(default_factory=list)
-    seconds: list = field(default_factory=list)     # training time (evaluation excluded) after each iteration
-    eval_iteration: list = field(default_factory=list)
-    test_psnr: list = field(default_factory=list)
-
-    def to_dict(self) -> dict:
-        return dict(self.__dict__)
-
-
-class ViewSampler:
-    """Random training-view order without replacement, refilled when exhausted (the reference's viewpoint stack)."""
-
-    def __init__(self, n: int, seed: int):
-        self.n = n
-        self.rng = np.random.default_rng(seed)
-        self.stack: list[int] = []
-
-    def next(self) -> int:
-        if not self.stack:
-            self.stack = list(self.rng.permutation(self.n))
-        return int(self.stack.pop())
-
-    def state(self) -> dict:
-        return {"rng": self.rng.bit_generator.state, "stack": [int(i) for i in self.stack]}
-
-    def restore(self, s: dict) -> None:
-        self.rng.bit_generator.state = s["rng"]
-        self.stack = list(s["stack"])
-
-
-def initial_gaussians(ds: Dataset, sh_degree: int, strategy: Strategy | None = None, seed: int = 0) -> Gaussians:
-    """The Gaussians a run starts from: the dataset's points with the strategy's initial opacity and scale factor,
-    subsampled (uniformly, ``seed``) to the strategy's bound on the number of Gaussians."""
-    if ds.points_xyz is None or len(ds.points_xyz) == 0:
-        raise ValueError(f"{ds.root}: the dataset has no initial points")
-    xyz, rgb = ds.points_xyz, ds.points_rgb
-    cap = None if strategy is None else strategy.max_gaussians
-    if cap is not None and len(xyz) > cap:
-        keep = np.sort(np.random.default_rng(seed).choice(len(xyz), size=cap, replace=False))
-        xyz, rgb = xyz[keep], rgb[keep]
-    if strategy is None:
-        return Gaussians.from_points(xyz, rgb, sh_degree=sh_degree)
-    return Gaussians.from_points(xyz, rgb, sh_degree=sh_degree, initial_opacity=strategy.init_opacity,
-                                 scale_factor=strategy.init_scale)
 
 
 class Trainer:
@@ -170,6 +121,7 @@ class Trainer:
         self.params = GaussianAdam(initial_gaussians(ds, cfg.optim.sh_degree, self.strategy, seed=cfg.seed + 3),
                                    cfg.optim, self.extent)
         self.strategy_state = self.strategy.initialize_state(self.params.n)
+        self.exposure = Exposure(len(ds.train), cfg.optim) if cfg.optim.exposure == "affine" else None
         # the frozen training step (see train_step.py) and the state of the loop around it
         self.train_step = TrainStep(self.strategy, cfg.raster, cfg.optim.lambda_dssim, self.background,
                                     freeze=cfg.freeze)
@@ -201,6 +153,8 @@ class Trainer:
         stats, strategy_meta = self.strategy.export_state(self.strategy_state)
         for k, v in stats.items():
             arrays[f"densify/{k}"] = v
+        if self.exposure is not None:
+            arrays.update({f"exposure/{k}": v for k, v in self.exposure.export().items()})
         meta = {"step": self.step, "elapsed": self.elapsed, "history": self.history.to_dict(),
                 "sampler": self.sampler.state(), "bg_rng": self.bg_rng.bit_generator.state,
                 "strategy": strategy_meta, "config": self.cfg.to_dict()}
@@ -224,13 +178,15 @@ class Trainer:
             return {k.split("/", 1)[1]: v for k, v in data.items() if k.startswith(prefix + "/")}
 
         for k, v in data.items():
-            if k.split("/")[0] in ("param", "adam") and v.dtype.kind == "f" and not np.all(np.isfinite(v)):
+            if k.split("/")[0] in ("param", "adam", "exposure") and v.dtype.kind == "f" and not np.all(np.isfinite(v)):
                 raise ValueError(f"{path}: the checkpoint holds non-finite values ({k}); it cannot be resumed "
                                  "(start a new run: --overwrite)")
         try:
             self.params = GaussianAdam(Gaussians.from_numpy(**section("param")), self.cfg.optim, self.extent)
             self.params.import_moments(section("adam"))
             self.strategy_state = self.strategy.import_state(section("densify"), meta["strategy"], self.params.n)
+            if self.exposure is not None:
+                self.exposure.restore(section("exposure"))
         except (KeyError, TypeError, ValueError) as e:
             raise ValueError(f"{path}: checkpoint does not fit this run ({e})") from None
         self.step = int(meta["step"])
@@ -252,6 +208,11 @@ class Trainer:
         o = self.cfg.optim
         return self.extent * expon_lr(step, o.position_lr_init, o.position_lr_final, o.position_lr_max_steps,
                                       delay_steps=o.position_lr_delay_steps, delay_mult=o.position_lr_delay_mult)
+
+    def _exposure_lr(self, step: int) -> float:
+        """The exposure transforms' learning rate at ``step``: decaying over the run's schedule, as the positions'."""
+        o = self.cfg.optim
+        return expon_lr(step, o.exposure_lr_init, o.exposure_lr_final, o.position_lr_max_steps)
 
     def _depth_weight(self, step: int) -> float:
         """The depth-loss weight at ``step``: decaying over the run's schedule (``position_lr_max_steps``, which a
@@ -280,9 +241,10 @@ class Trainer:
         self.strategy.step_pre_backward(self.params, self.strategy_state, step, out,
                                         collect=self.strategy.updates_state_at(step))
         depth = self.depth_targets is not None
+        image = None if self.exposure is None else self.exposure.apply(out.rgb, dr.opaque(mi.UInt32, idx))
         loss = training_loss(out, self.target(idx, bg), o.lambda_dssim, self.strategy, self.params,
                              self.depth_targets[idx] if depth else None,
-                             dr.opaque(mi.Float, self._depth_weight(step)) if depth else None)
+                             dr.opaque(mi.Float, self._depth_weight(step)) if depth else None, image)
         # (a view where nothing is visible gives a loss that does not depend on the parameters)
         dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
         value = float(loss[0])
@@ -296,6 +258,9 @@ class Trainer:
             self.params.step()
         self.strategy.step_post_update(self.params, self.strategy_state, dr.opaque(mi.UInt32, step),
                                        dr.opaque(mi.Float, self._means_lr(step)))
+        if self.exposure is not None:          # (every iteration, as the reference's exposure optimizer)
+            self.exposure.set_learning_rate(dr.opaque(mi.Float, self._exposure_lr(step)))
+            self.exposure.step()
         return value, int(out.n_instances)
 
     def _diverged(self, loss: float, step: int, view: int) -> TrainingDiverged:
@@ -332,12 +297,15 @@ class Trainer:
                             means_lr=dr.opaque(mi.Float, self._means_lr(step)), step=dr.opaque(mi.UInt32, step),
                             depth_target=None if self.depth_targets is None else self.depth_targets[idx],
                             depth_weight=None if self.depth_targets is None
-                            else dr.opaque(mi.Float, self._depth_weight(step)))
+                            else dr.opaque(mi.Float, self._depth_weight(step)),
+                            view_index=None if self.exposure is None else dr.opaque(mi.UInt32, idx),
+                            exposure_lr=None if self.exposure is None
+                            else dr.opaque(mi.Float, self._exposure_lr(step)))
         degree = sh_degree_at(step, self.params.gaussians.sh_degree, cfg.optim.sh_increase_interval)
         if self._valid is None:
             self._valid = dr.opaque(mi.Bool, True)
         loss, ok, instances = self.train_step(self.params, self.strategy_state, inputs, self._valid, degree,
-                                              self.strategy.updates_state_at(step), self.capacity)
+                                              self.strategy.updates_state_at(step), self.capacity, self.exposure)
         self._valid = ok
         self._pending.append(_Pending(step, idx, host, loss, ok, instances))
         self.step = step
@@ -483,12 +451,19 @@ class Trainer:
         report.write_view_outputs(self.out, scores, self.ds.color_space)
         metrics = {
             "split": "test" if self.ds.test else "train (no test views)",
+            "protocol": PROTOCOLS["full"],
             **scores_report(scores, note),
             "gaussians": g.n,
             "iterations": self.step,
             "training_seconds": round(self.elapsed, 3),
             "iterations_per_second": round(self.step / self.elapsed, 3) if self.elapsed > 0 else None,
         }
+        if self.exposure is not None:            # (the transforms belong to the training images: beside the model)
+            half, _ = evaluate_views(g, views, self.background, cfg=self.cfg.raster, color_space=self.ds.color_space,
+                                     protocol="half")
+            metrics["half_image"] = {"protocol": PROTOCOLS["half"], **scores_report(half, note)}
+            report.write_json(self.out / run_folder.EXPOSURE, {v.name: m.tolist() for v, m in
+                                                              zip(self.ds.train, self.exposure.matrices())})
         depth = depth_error(g, views, cfg=self.cfg.raster)
         if depth is not None:
             metrics["depth_mae"], metrics["depth_coverage"] = depth["depth_mae"], round(depth["coverage"], 6)
