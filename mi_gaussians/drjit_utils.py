@@ -31,13 +31,21 @@ def to_numpy(t) -> np.ndarray:
     return np.array(t, dtype=np.float32, copy=True)
 
 
+#: Bytes of slack after a NumPy buffer handed to a kernel: Dr.Jit's LLVM scatter of a foreign (zero-copy) source
+#: reads whole SIMD packets, past the last element (up to 63 bytes with AVX-512), which crashes when the buffer ends
+#: just before an unmapped page (tests/test_drjit_utils.py makes that page unreadable on purpose).
+_SLACK = 256
+
+
 def owned_array(tp, a: np.ndarray):
     """A flat Dr.Jit array of type ``tp`` (``mi.Float``, ``mi.UInt32``, ...) owning a copy of the NumPy array ``a``
-    (see :func:`owned_tensor` for why a copy)."""
+    (see :func:`owned_tensor` for why a copy). The kernel reads ``a`` from a padded copy: see :data:`_SLACK`."""
     a = np.ascontiguousarray(a).reshape(-1)
     out = dr.zeros(tp, a.size)
     if a.size:
-        dr.scatter(out, tp(a), dr.arange(mi.UInt32, a.size))
+        padded = np.empty(a.size + _SLACK // a.itemsize, a.dtype)
+        padded[:a.size] = a
+        dr.scatter(out, tp(padded[:a.size]), dr.arange(mi.UInt32, a.size))
     return out
 
 
