@@ -77,3 +77,15 @@ def test_import_registers_for_the_active_variant_only_once_set():
             "print(mi.load_dict({'type': 'gaussian_splatting'}))")
     res = _python(code)
     assert res.returncode == 0 and "GaussianSplattingIntegrator" in res.stdout, res.stderr[-800:]
+
+
+def test_the_source_tree_imports_like_the_installed_package():
+    """``python -c`` from the repository root (or a Ray worker started there) finds the source tree's ``mi_gaussians``
+    before the installed one: it must import with its plugins, not fail half-way (``mi_gaussians/plugins`` links to
+    ``plugins/``)."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    code = ("import mitsuba as mi; mi.set_variant('llvm_ad_rgb'); import mi_gaussians, mi_gaussians.plugins as p; "
+            "print(p.__file__); print(mi.load_dict({'type': 'gaussian_splatting'}))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=root)
+    assert res.returncode == 0 and "GaussianSplattingIntegrator" in res.stdout, res.stderr[-800:]
+    assert res.stdout.splitlines()[0].startswith(os.path.join(root, "mi_gaussians", "plugins"))
