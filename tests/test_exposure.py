@@ -159,7 +159,7 @@ def test_half_image_protocol_scores_what_a_transform_explains(scene):  # noqa: F
     from mi_gaussians.evaluate import evaluate_views
     from mi_gaussians.model.ply import read_ply
 
-    g = mig.Gaussians.load_ply(Path(mig.__file__).resolve().parents[1] / "scenes" / "tiny_gaussians.ply")
+    g = mig.Gaussians.load_ply(Path(__file__).resolve().parents[1] / "scenes" / "tiny_gaussians.ply")
     ds = mig.load_dataset(scene, background=(1.0, 1.0, 1.0))
     view = ds.test[0]
     img = np.array(mig.render(g, view.camera, background=(1, 1, 1)).rgb)

@@ -441,13 +441,22 @@ class Trainer:
         self.save_checkpoint()
         raise TrainingStopped(self.stop_signal, self.step)
 
+    def _stop_if_asked(self) -> None:
+        """While the final outputs are written: a stop asked for (:attr:`stop_signal`) raises
+        :class:`TrainingStopped` at the last iteration, whose checkpoint is written (a resumed run writes them)."""
+        if self.stop_signal is not None:
+            self._stop()
+
     def finish(self) -> dict:
-        """Final outputs: PLY, test renders and comparisons, metrics.json, curves."""
+        """Final outputs: PLY, test renders and comparisons, metrics.json, curves. A stop asked for while they are
+        written (before metrics.json, the run's last word) stops the run at its last iteration."""
         g = self.gaussians
+        self._stop_if_asked()
         g.save_ply(self.out / run_folder.MODEL)
         views = self.ds.test if self.ds.test else self.ds.train[:1]
         scores, note = evaluate_views(g, views, self.background, cfg=self.cfg.raster, keep_images=True,
                                       color_space=self.ds.color_space)
+        self._stop_if_asked()
         report.write_view_outputs(self.out, scores, self.ds.color_space)
         metrics = {
             "split": "test" if self.ds.test else "train (no test views)",
@@ -467,6 +476,7 @@ class Trainer:
         depth = depth_error(g, views, cfg=self.cfg.raster)
         if depth is not None:
             metrics["depth_mae"], metrics["depth_coverage"] = depth["depth_mae"], round(depth["coverage"], 6)
+        self._stop_if_asked()
         report.write_json(self.out / run_folder.METRICS, metrics)
         report.write_json(self.out / run_folder.HISTORY, self.history.to_dict())
         report.plot_curves(self.out / run_folder.CURVES, self.history.to_dict())
