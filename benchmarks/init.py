@@ -1,17 +1,19 @@
-"""Random initialization benchmark: Blender-layout scenes (no SfM points) trained from the reference's cube
-(``--set data.random_init=cube``, the default) and from the frustum sampler (``data.random_init=frustum``), in the same
-run with the same seed: PSNR / SSIM on the held-out views and the final count.
+"""Initial points of posed datasets without points of their own, in the same run with the same seed: ``--init auto``
+(the default: here, points triangulated from the posed training images), the reference's random cube and the frustum
+sampler, at 3k and 7k iterations. Prints PSNR / SSIM on the held-out views, the final count, the initial point count
+and the seconds each stage of the triangulation took.
 
-    python benchmarks/init.py                                  # mi_objects/blender and room_blender, 3k iterations
-    python benchmarks/init.py --datasets room_blender --iterations 7000
+    python benchmarks/init.py                                   # every dataset below, 3k and 7k
+    python benchmarks/init.py --datasets room_blender --iterations 3000
 
 Datasets:
-  * mi_objects_blender: ../shared/data/mi_objects/blender (objects inside the reference's [-1.3, 1.3]^3 cube), white
-    background;
   * room_blender: scenes/room.xml's 32 declared cameras inside a 4 x 2.6 x 4 room, path-traced by Mitsuba (the rig and
     reference code of ``mi-gs optimize scenes/room.xml``) and written in the Blender layout (sRGB PNGs,
     transforms_train.json / transforms_test.json with every 8th camera held out), so that it trains like any Blender
-    capture, without the scene's shapes or points.
+    capture, without the scene's shapes or points;
+  * mi_room_blender: ../shared/data/mi_room/blender (35 training views, 256x256, a room seen from inside);
+  * mi_objects_blender: ../shared/data/mi_objects/blender (white background);
+  * fox: ../shared/data/fox (instant-ngp layout, a phone capture) at -r 8.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from cli_run import train  # noqa: E402
 DATA = (ROOT / ".." / "shared" / "data").resolve()
+INITS = ("auto", "cube", "frustum")
 
 
 def room_blender(out: Path, cache: Path) -> Path:
@@ -59,31 +62,60 @@ def room_blender(out: Path, cache: Path) -> Path:
     return out
 
 
+def dataset(name: str, root: Path, cache: Path) -> tuple[Path, list[str]]:
+    if name == "room_blender":
+        return room_blender(root / "room_blender" / "dataset", cache), []
+    if name == "mi_room_blender":
+        return DATA / "mi_room" / "blender", []
+    if name == "mi_objects_blender":
+        return DATA / "mi_objects" / "blender", ["--white-background"]
+    if name == "fox":
+        return DATA / "fox", ["-r", "8"]
+    raise SystemExit(f"unknown dataset {name}")
+
+
+def triangulation(run: Path) -> tuple[int | None, dict]:
+    """(initial point count, seconds per stage) of a run's triangulation (its cached result), (None, {}) without."""
+    found = sorted((run / "points").glob("*/points.npz"))
+    if not found:
+        return None, {}
+    with np.load(found[0]) as z:
+        return int(len(z["xyz"])), json.loads(str(z["seconds"]))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--datasets", nargs="+", default=["mi_objects_blender", "room_blender"])
-    ap.add_argument("--iterations", type=int, default=3000)
+    ap.add_argument("--datasets", nargs="+", default=["room_blender", "mi_room_blender", "mi_objects_blender", "fox"])
+    ap.add_argument("--iterations", nargs="+", type=int, default=[3000, 7000])
     ap.add_argument("--out", default="/tmp/mi_gs_init")
     ap.add_argument("--cache", default="/tmp/mi_gs_depth/room/references",
                     help="scenes/room.xml's reference cache (default: benchmarks/depth.py's, shared)")
     args = ap.parse_args(argv)
     root = Path(args.out)
     rows = []
-    for name in args.datasets:
-        if name == "mi_objects_blender":
-            src, extra = DATA / "mi_objects" / "blender", ["--white-background"]
-        elif name == "room_blender":
-            src, extra = room_blender(root / "room_blender" / "dataset", Path(args.cache)), []
-        else:
-            raise SystemExit(f"unknown dataset {name}")
-        for init in ("cube", "frustum"):
-            m = train(src, root / name / init, args.iterations, extra + ["--set", f"data.random_init={init}"])
-            rows.append((name, init, m["mean"]["psnr"], m["mean"]["ssim"], m["gaussians"], m["training_seconds"] / 60))
-    print(f"\n{args.iterations} iterations, 100k random initial points; held-out views\n")
-    print("| dataset | data.random_init | PSNR | SSIM | Gaussians | minutes |")
-    print("|---|---|---:|---:|---:|---:|")
-    for name, init, psnr, ssim, n, minutes in rows:
-        print(f"| {name} | {init} | {psnr:.2f} | {ssim:.4f} | {n:,} | {minutes:.1f} |")
+    for iterations in args.iterations:                 # (the shorter runs of every dataset first)
+        for name in args.datasets:
+            src, extra = dataset(name, root, Path(args.cache))
+            if not src.is_dir():
+                print(f"{name}: {src} not found, skipped", file=sys.stderr)
+                continue
+            for init in INITS:
+                run = root / name / f"{init}_{iterations}"
+                m = train(src, run, iterations, extra + ["--init", init])
+                count, seconds = triangulation(run)
+                rows.append((name, iterations, init, count, seconds, m))
+                print(f"{name} {iterations} {init}: {m['mean']['psnr']:.2f} dB, {m['gaussians']:,} Gaussians, "
+                      f"initial points {count if count is not None else 'random'}", file=sys.stderr, flush=True)
+    print("\nPSNR / SSIM on the held-out views; one run each, 2-core machine\n")
+    print("| dataset | iterations | --init | initial points | triangulation s (images, features, matching, "
+          "triangulation) | PSNR | SSIM | Gaussians | minutes |")
+    print("|---|---:|---|---:|---|---:|---:|---:|---:|")
+    for name, iterations, init, count, seconds, m in rows:
+        stages = " + ".join(f"{seconds[k]:.1f}" for k in ("images", "features", "matching", "triangulation")
+                            if k in seconds) or ""
+        points = f"{count:,}" if count is not None else "100,000 random"
+        print(f"| {name} | {iterations:,} | {init} | {points} | {stages} | {m['mean']['psnr']:.2f} | "
+              f"{m['mean']['ssim']:.4f} | {m['gaussians']:,} | {m['training_seconds'] / 60:.1f} |")
     return 0
 
 

@@ -16,7 +16,11 @@ from dataclasses import dataclass
 #: The densification strategies ``TrainConfig.strategy`` may name, each with the section of :class:`TrainConfig` it
 #: reads (``mi_gaussians.optim.strategies`` gives each its class; a test checks that both list the same names).
 STRATEGIES = {"default": "densify", "mcmc": "mcmc"}
-#: ``DataConfig.random_init``: where the initial random points of layouts without SfM points lie.
+#: ``DataConfig.init``: where a run's initial points come from. 'auto': the layout's own points (COLMAP) when it has
+#: them, else triangulated from the posed images, else (too few) the random cube; 'points' the layout's own only;
+#: 'triangulate' always; 'cube' and 'frustum' random (RANDOM_INITS, data/pointcloud.py).
+INITS = ("auto", "points", "triangulate", "cube", "frustum")
+#: The random samplers among them (where the initial random points of layouts without points lie).
 RANDOM_INITS = ("cube", "frustum")
 #: ``SceneConfig.rig``: the cameras of a Mitsuba scene.
 RIGS = ("auto", "sensors", "hemisphere", "sphere")
@@ -33,12 +37,26 @@ class DataConfig:
     resolution: int = 1                      # -r: divide the image size by 1, 2, 4 or 8 (images_N folders when present)
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # RGBA images are composited over this colour
     test_every: int = 8                      # COLMAP / single-transforms layouts: index % test_every == 0 is test (0: no test split)
-    random_points: int = 100_000             # initial points for layouts without SfM points
-    random_init: str = "cube"                # ... sampled in the reference's cube, or 'frustum': where the training
-                                             # cameras look (RANDOM_INITS; data/pointcloud.py)
+    init: str = "auto"                       # initial points (INITS): the layout's own, else triangulated from the
+                                             # posed images (data/triangulate.py), else the reference's random cube
+    random_points: int = 100_000             # random initial points ('cube', 'frustum', and the fallback of 'auto')
     masks: bool = True                       # COLMAP layout: composite each image over the background through its
                                              # mask in masks/ (white = object) when that folder exists
     seed: int = 0
+
+
+@dataclass(frozen=True)
+class TriangulateConfig:
+    """Initial points triangulated from a dataset's posed training images (``data.init`` 'auto' or 'triangulate':
+    ``mi_gaussians.data.triangulate``), with COLMAP's filters."""
+
+    neighbours: int = 12                     # each camera is matched with this many near ones looking the same way,
+    exhaustive_below: int = 30               # ... or with every other camera when there are at most this many images
+    max_features: int = 8192                 # SIFT features per image (COLMAP's default)
+    max_reprojection_error: float = 2.0      # pixels: points that reproject worse are dropped
+    min_angle: float = 1.5                   # degrees: points triangulated at a smaller angle are dropped (COLMAP's)
+    min_track_length: int = 2                # points seen by fewer images are dropped
+    min_points: int = 100                    # fewer points than this: too few to start from ('auto' uses the cube)
 
 
 @dataclass(frozen=True)
@@ -171,6 +189,7 @@ class TrainConfig:
     densify: DensifyConfig = DensifyConfig()
     raster: RasterConfig = RasterConfig()
     scene: SceneConfig = SceneConfig()       # used only when the input is a Mitsuba scene file
+    triangulate: TriangulateConfig = TriangulateConfig()   # used when data.init triangulates
     strategy: str = "default"                # densification: a name of STRATEGIES ('default': the paper's, 'mcmc')
     mcmc: MCMCConfig = MCMCConfig()
     seed: int = 0
@@ -185,7 +204,7 @@ class TrainConfig:
 
     # Fields that existed in earlier versions and were removed because they had no effect; a saved config.json that
     # still names them loads (the values are ignored).
-    RETIRED = {"RasterConfig": ("tile_size",)}
+    RETIRED = {"RasterConfig": ("tile_size",), "DataConfig": ("random_init",)}   # (random_init: now data.init)
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
@@ -306,7 +325,7 @@ _OPEN_FRACTION = Range(0, 1, open_low=True, open_high=True)
 #: listed must be >= 0; tuples not listed are free (an up vector may point down).
 RULES: dict[str, "Range | tuple[str, ...]"] = {
     "strategy": tuple(STRATEGIES), "checkpoint_every": _COUNT,
-    "data.resolution": _COUNT, "data.random_points": _COUNT, "data.random_init": RANDOM_INITS,
+    "data.resolution": _COUNT, "data.random_points": _COUNT, "data.init": INITS,
     "data.background": Range(0),
     "optim.iterations": _COUNT, "optim.position_lr_max_steps": _COUNT, "optim.sh_degree": Range(0, 3),
     "optim.sh_increase_interval": _COUNT, "optim.lambda_dssim": _FRACTION, "optim.adam_eps": _POSITIVE,
@@ -322,6 +341,8 @@ RULES: dict[str, "Range | tuple[str, ...]"] = {
     "scene.fov": Range(0, 180, open_low=True, open_high=True),
     "scene.radius": _POSITIVE, "scene.elevation": Range(-90, 90), "scene.spp": _COUNT, "scene.init": SCENE_INITS,
     "scene.init_points": _COUNT,
+    "triangulate.neighbours": _COUNT, "triangulate.max_features": _COUNT, "triangulate.min_track_length": Range(2),
+    "triangulate.min_points": _COUNT,
 }
 
 

@@ -22,7 +22,8 @@ def is_temporary_file(name: str) -> bool:
     return _TEMPORARY.match(name) is not None
 
 
-def _alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
+    """Whether the process ``pid`` is running (on this machine)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -46,7 +47,7 @@ def remove_stale_temporary_files(folder: str | os.PathLike, unowned: bool = Fals
         if m is None or not entry.is_file(follow_symlinks=False):
             continue
         pid = m.group("pid")
-        if (pid is None and not unowned) or (pid is not None and (int(pid) == os.getpid() or _alive(int(pid)))):
+        if (pid is None and not unowned) or (pid is not None and (int(pid) == os.getpid() or process_alive(int(pid)))):
             continue
         with contextlib.suppress(FileNotFoundError):
             os.remove(entry.path)

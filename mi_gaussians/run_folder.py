@@ -29,6 +29,7 @@ EVAL = "eval.json"
 EXPOSURE = "exposure.json"               # the training images' colour transforms (--exposure), name -> 3x4
 GAUSSIAN_SCENE = "gaussians.xml"
 REFERENCES = "references"
+POINTS = "points"                        # triangulated initial points, cached (kept by --overwrite, as references)
 #: The names a run writes at the top of its folder (how a folder of an earlier version, without a Manifest, is read)
 RUN_OUTPUTS = (CHECKPOINTS, RENDERS, COMPARE, CONFIG, METRICS, EVAL, HISTORY, CURVES, GAUSSIAN_SCENE, MODEL, EXPOSURE)
 _SAVED_MODELS = "point_cloud_*.ply"       # the models of TrainConfig.save_iterations
@@ -242,7 +243,7 @@ class Manifest:
             self.entries = new
             atomic_write_text(self.path, json.dumps({"created": sorted(new)}, indent=1) + "\n")
 
-    def remove_outputs(self, keep=(REFERENCES,)) -> list[str]:
+    def remove_outputs(self, keep=(REFERENCES, POINTS)) -> list[str]:
         """Remove what the manifest lists (but ``keep`` and what lies below it): files that are files (no links),
         then folders left empty, deepest first. Returns the removed paths (relative)."""
         import json

@@ -74,6 +74,11 @@ def stopping_on_signals():
             raise Stopped(signum, None)
         state.trainer.stop_signal = signum
 
+    # pycolmap (its glog) puts a handler of its own on SIGTERM when it is first imported: one that prints a stack
+    # trace and kills the process. Imported later (a COLMAP model, undistortion, triangulation), it would replace ours
+    # underneath Python, and a SIGTERM during training would lose the iterations since the last checkpoint.
+    import pycolmap  # noqa: F401
+
     signums = [getattr(signal, name) for name in STOP_SIGNALS if hasattr(signal, name)]
     before = {s: signal.signal(s, handler) for s in signums}
     try:
@@ -131,7 +136,7 @@ def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cac
                   log, stop) -> RunResult:
     from .data.dataset import check_trainable_size, fingerprint, verify_images
     from .optim.trainer import Trainer, TrainingStopped
-    from .run_folder import REFERENCES, Manifest, run_outputs
+    from .run_folder import POINTS, REFERENCES, Manifest, run_outputs
 
     manifest = Manifest(out)
     cache = cache or (record.references_cache(out) if record else None)
@@ -139,7 +144,8 @@ def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cac
         manifest.check_free([REFERENCES])
         manifest.claim([REFERENCES])                  # (before the references are rendered into it)
     ds = training_dataset(src, cfg, out, cache=cache, progress=progress,
-                          expect_key=record.references_key if record else None, farm=farm, log=log)
+                          expect_key=record.references_key if record else None, farm=farm, log=log,
+                          with_points=False)
     check_trainable_size(ds)
     digest = fingerprint(ds) if ds.layout != "mitsuba" else None    # (a scene file's references carry their own key)
     if record is not None:
@@ -147,6 +153,12 @@ def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cac
     verify_images(ds.test, progress=progress)
     planned = run_outputs(cfg, [v.name for v in (ds.test or ds.train[:1])], ds.layout == "mitsuba")
     manifest.check_free(planned)                      # (a user's file where the run would write: refused)
+    if not is_scene_file(src) and cache is None:
+        manifest.check_free([POINTS])
+    if record is None and not is_scene_file(src):     # (once all is checked; a resumed run's checkpoint holds its model)
+        if cache is None and cfg.data.init in ("auto", "triangulate"):
+            manifest.claim([POINTS])                  # (a triangulation's cache, kept by --overwrite)
+        ds = initial_points(ds, cfg, points_root(out, cache), log)
     trainer = Trainer(ds, cfg, out, progress=progress)     # (decodes the training images)
     watcher = watch(trainer, ds) if watch is not None else None
     if stop is not None:
@@ -193,12 +205,13 @@ def check_resumed_dataset(src: Path, out: Path, record: RunRecord, fingerprint: 
 
 def training_dataset(src: str | Path, cfg: TrainConfig, out: str | Path, cache: str | None = None,
                      progress: bool = True, expect_key: str | None = None, render_missing: bool = True,
-                     farm=None, log: Callable[[str], None] | None = _stderr) -> Dataset:
-    """The dataset a run of ``cfg`` in ``out`` trains on: a dataset folder (COLMAP, Blender, instant-ngp), or a
-    Mitsuba scene file whose path-traced references are cached in ``cache`` (default OUTDIR/references); references
-    missing from the cache are rendered (by ``farm`` when given) unless ``render_missing`` is False. ``expect_key``:
-    the references key of the run being resumed (a scene that changed since is refused before anything is
-    rendered)."""
+                     farm=None, log: Callable[[str], None] | None = _stderr, with_points: bool = True) -> Dataset:
+    """The dataset a run of ``cfg`` in ``out`` trains on, with the points it starts from: a dataset folder (COLMAP,
+    Blender, instant-ngp; :func:`initial_points`), or a Mitsuba scene file whose path-traced references are cached in
+    ``cache`` (default OUTDIR/references); references missing from the cache are rendered (by ``farm`` when given)
+    unless ``render_missing`` is False. ``expect_key``: the references key of the run being resumed (a scene that
+    changed since is refused before anything is rendered). ``with_points=False``: a dataset folder's points as the layout
+    gives them (nothing triangulated; :func:`initial_points` does the rest)."""
     d = cfg.data
     if is_scene_file(src):
         from .data.scene_dataset import load_scene_dataset
@@ -206,8 +219,50 @@ def training_dataset(src: str | Path, cfg: TrainConfig, out: str | Path, cache: 
         return load_scene_dataset(src, cfg.scene, cache_root=references_root(Path(out), cache), background=d.background,
                                   test_every=d.test_every, seed=d.seed, progress=progress, log=log,
                                   expect_key=expect_key, render_missing=render_missing, farm=farm)
-    return load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
-                        random_points=d.random_points, seed=d.seed, masks=d.masks, random_init=d.random_init)
+    ds = load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
+                      random_points=d.random_points, seed=d.seed, masks=d.masks,
+                      random_init="frustum" if d.init == "frustum" else "cube",
+                      own_points=d.init in ("auto", "points"))
+    return initial_points(ds, cfg, points_root(Path(out), cache), log) if with_points else ds
+
+
+def points_root(out: Path, cache: str | None) -> Path:
+    """Where a run's triangulated points are cached: ``cache``/points when given, else OUTDIR/points."""
+    return (Path(cache) if cache else Path(out)) / "points"
+
+
+def initial_points(ds: Dataset, cfg: TrainConfig, cache: Path, log: Callable[[str], None] | None = _stderr) -> Dataset:
+    """``ds`` with the points a run of ``cfg`` starts from (``data.init``, :data:`mi_gaussians.config.INITS`): the
+    layout's own, triangulated from the posed training images (cached in ``cache``), or random; 'auto' takes the
+    first of these that there is, and says which (and why) in one line to ``log``."""
+    say = log or (lambda line: None)
+    init, n_random = cfg.data.init, cfg.data.random_points
+    own = ds.points_from == "layout"
+    if init == "points" and not own:
+        raise ValueError(f"{ds.root}: the {ds.layout} layout has no points of its own (data.init=points); use "
+                         "--init triangulate, or auto")
+    if init in ("points", "auto") and own:
+        say(f"initial points: the dataset's own {len(ds.points_xyz):,}")
+        return ds
+    if init in ("cube", "frustum"):
+        say(f"initial points: {n_random:,} random ({init})")
+        return ds
+    from .data.dataset import fingerprint
+    from .data.triangulate import NoPoints, cache_key, triangulate
+
+    work = cache / cache_key(fingerprint(ds), cfg.triangulate, cfg.data.seed)
+    try:
+        tri = triangulate(ds.train, ds.color_space, work, cfg.triangulate, cfg.data.seed, where=str(ds.root), log=log)
+        if len(tri.xyz) < cfg.triangulate.min_points:
+            raise NoPoints(f"{ds.root}: triangulation kept {len(tri.xyz):,} points, fewer than "
+                             f"triangulate.min_points ({cfg.triangulate.min_points})")
+    except NoPoints as e:
+        if init == "triangulate":
+            raise
+        say(f"initial points: {n_random:,} random in the cube, since no points could be triangulated ({e})")
+        return ds
+    say(f"initial points: {len(tri.xyz):,} triangulated from the {len(ds.train)} posed training images")
+    return dataclasses.replace(ds, points_xyz=tri.xyz, points_rgb=tri.rgb, points_from="triangulated")
 
 
 def run_dataset(record: RunRecord, out: str | Path, dataset: str | None = None, render_missing: bool = True,

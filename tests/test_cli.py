@@ -29,9 +29,18 @@ def run(*args):
                           cwd=tempfile.gettempdir())
 
 
+#: What a run says before training as it goes (where its initial points come from), not part of an error.
+PROGRESS_LINES = ("initial points: ", "triangulation [")
+
+
+def message_lines(stderr: str) -> list[str]:
+    """The non-empty lines of a command's stderr, without the progress lines of :data:`PROGRESS_LINES`."""
+    return [ln for ln in stderr.splitlines() if ln.strip() and not ln.startswith(PROGRESS_LINES)]
+
+
 def assert_one_line_error(res, *needles):
     assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
-    err = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    err = message_lines(res.stderr)
     assert len(err) == 1 and err[0].startswith("mi-gs: error: "), res.stderr
     assert "Traceback" not in res.stderr
     for n in needles:

@@ -26,7 +26,7 @@ EXAMPLES = {
     "--max-gaussians": ["5000"], "--antialiased": [], "--sh-degree": ["1"], "--test-every": ["4"],
     "--random-points": ["1000"], "--seed": ["3"], "--checkpoint-every": ["50"], "--eval-every": ["0"],
     "--rig": ["sphere"], "--views": ["12"], "--test-views": ["2"], "--radius": ["4"], "--fov": ["30"],
-    "--up": ["0", "0", "1"], "--spp": ["8"], "--linear": [], "--init": ["random"], "--init-points": ["2000"],
+    "--up": ["0", "0", "1"], "--spp": ["8"], "--linear": [], "--init": ["cube"], "--init-points": ["2000"],
     "--define": ["spp=4"], "--exposure": [],
 }
 SCENE_ONLY = {"--depth-weight"}          # (checked against the input: needs a scene file)

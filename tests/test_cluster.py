@@ -275,3 +275,13 @@ def test_without_ray_the_error_names_the_extra(tmp_path):
     write_spec(tmp_path / "s.toml", f'datasets = ["{DATA / "tiny_blender"}"]\niterations = 5\n')
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert_one_line_error(r, "needs Ray", "pip install 'mi-gaussians[ray]'")
+
+
+def test_a_sweep_started_before_the_cache_was_renamed_keeps_its_references(tmp_path):
+    from mi_gaussians.cluster.sweep import cache_folder
+
+    assert cache_folder(tmp_path) == tmp_path / "cache"
+    (tmp_path / "references").mkdir()                              # (a sweep of the version that named it so)
+    assert cache_folder(tmp_path) == tmp_path / "references"
+    (tmp_path / "cache").mkdir()
+    assert cache_folder(tmp_path) == tmp_path / "cache"

@@ -54,7 +54,7 @@ def test_settings_are_parsed_as_their_field_types():
     ("mcmc.init_opacity=1", "must be > 0 and < 1"),
     ("optim.sh_degree=4", "must be >= 0 and <= 3"),
     ("strategy=sgd", "'sgd' is not one of default, mcmc"),
-    ("data.random_init=sphere", "'sphere' is not one of cube, frustum"),
+    ("data.init=sphere", "'sphere' is not one of auto, points, triangulate, cube, frustum"),
     ("scene.resolution=8", "must be >= 16"),
     ("scene.resolution=64,64,64", "expected 1 to 2 values, got 3"),
 ])

@@ -130,7 +130,7 @@ def test_cli_depth_weight_needs_a_scene_file(tmp_path):
     r = run("optimize", scene, "-o", tmp_path / "o", "--depth-weight", "1")
     assert r.returncode == 2 and "scene .xml" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     for settings, words in ((["--set", "optim.depth_weight=1"], "scene .xml"),
-                            (["--set", "data.random_init=sphere"], "data.random_init")):
+                            (["--set", "data.init=sphere"], "data.init")):
         r = run("optimize", scene, "-o", tmp_path / "o", *settings)
         assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert not (tmp_path / "o").exists()

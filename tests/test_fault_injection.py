@@ -201,3 +201,64 @@ def test_sigterm_at_random_moments_checkpoints_and_resumes(tmp_path):
     assert abs(metrics["mean"]["psnr"] - straight["mean"]["psnr"]) < 0.5, (metrics["mean"], straight["mean"])
     print(f"{signals} SIGTERMs ({importing} while importing, {before_training} before training); stopped at "
           f"{stopped_at}; PSNR {metrics['mean']['psnr']:.2f} against {straight['mean']['psnr']:.2f} uninterrupted")
+
+
+def test_sigterm_after_pycolmap_was_imported_checkpoints(tmp_path):
+    """pycolmap, imported once the run has begun (to triangulate the initial points of a Blender layout, to read a
+    COLMAP model, to undistort), puts glog's handler on SIGTERM, one that prints a stack trace and kills the process:
+    the run's own handler must still be the one that answers (a checkpoint, one line, status 143)."""
+    data = make_blender_dataset(tmp_path / "scene", n_train=8, n_test=2, size=48)
+    out = tmp_path / "run"
+    cmd = [EXE, "optimize", str(data), "-o", str(out), "--iterations", "20000", "--checkpoint-every", "10",
+           "--eval-every", "0", "--quiet", "--init", "auto", "--random-points", "3000"]
+    with open(tmp_path / "stderr.txt", "wb") as log:
+        proc = subprocess.Popen(cmd, cwd=tempfile.gettempdir(), stdout=subprocess.DEVNULL, stderr=log)
+    try:
+        deadline = time.time() + 180
+        while time.time() < deadline and proc.poll() is None and checkpoint_step(out) < 30:
+            time.sleep(0.01)
+        assert proc.poll() is None, _stderr(out)
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    err = _stderr(out)
+    assert proc.returncode == 143 and "Aborted at" not in err, (proc.returncode, err)
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("mi-gs: stopped by SIGTERM at iteration "), err
+    assert checkpoint_step(out) == int(last.split("at iteration ")[1].split(",")[0])
+
+
+def test_a_stop_while_the_outputs_are_written_stops_at_the_last_iteration(tmp_path):
+    """A signal that arrives after the last iteration, while the model is evaluated and written, stops the run there
+    (its checkpoint is the last iteration's, no metrics.json yet); --resume writes the outputs without training."""
+    import dataclasses
+
+    import mitsuba as mi
+
+    mi.set_variant("llvm_ad_rgb")
+    from mi_gaussians.optim.trainer import Trainer, TrainingStopped
+    from test_train import load, small_config
+
+    data = make_blender_dataset(tmp_path / "scene", n_train=6, n_test=2, size=32)
+    cfg = small_config(20)
+    cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, random_points=500))
+    tr = Trainer(load(data, cfg), cfg, tmp_path / "run", progress=False)
+
+    def monitor(t):
+        if t.step == cfg.optim.iterations:
+            t.stop_signal = signal.SIGTERM                 # (after the last iteration: what finish() does next)
+
+    try:
+        tr.run(monitor=monitor)
+    except TrainingStopped as e:
+        assert e.step == cfg.optim.iterations
+    else:
+        raise AssertionError("the stop was ignored")
+    assert checkpoint_step(tmp_path / "run") == cfg.optim.iterations
+    assert not (tmp_path / "run" / "metrics.json").exists()
+    resumed = Trainer(load(data, cfg), cfg, tmp_path / "run", progress=False)
+    metrics = resumed.run(resume=True)
+    assert resumed.resumed_from == cfg.optim.iterations and metrics["iterations"] == cfg.optim.iterations

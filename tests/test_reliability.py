@@ -153,7 +153,9 @@ def test_resume_accepts_a_fingerprint_of_an_earlier_version_with_a_warning(copy_
     res = run("optimize", data, "-o", out, "--resume", "--iterations", 7, "--quiet")
     assert res.returncode == 0, res.stderr
     assert "fingerprint of an earlier mi-gs" in res.stderr
-    assert json.loads((out / "config.json").read_text())["dataset_fingerprint"].startswith("v2:")
+    from mi_gaussians.data.dataset import FINGERPRINT_VERSION
+
+    assert json.loads((out / "config.json").read_text())["dataset_fingerprint"].startswith(FINGERPRINT_VERSION + ":")
 
 
 def test_resume_refuses_a_changed_dataset(copy_of):

@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 
 from mi_gaussians import run_folder
-from test_cli import assert_one_line_error, run
+from mi_gaussians.io_utils import is_temporary_file
+from test_cli import assert_one_line_error, message_lines, run
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"
@@ -175,7 +176,7 @@ def test_4_sigterm_checkpoints_the_iteration_and_says_how_to_resume(data, tmp_pa
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 143, err
-    (line,) = [ln for ln in err.splitlines() if ln.strip()]
+    (line,) = message_lines(err)
     step = int(line.split("at iteration ")[1].split(",")[0])
     assert line.startswith("mi-gs: stopped by SIGTERM at iteration ") and step >= 100
     assert _checkpoint_step(out) == step                       # not the periodic one: the iteration it stopped at
@@ -196,7 +197,7 @@ def test_4_a_signal_before_training_keeps_the_references_rendered(tmp_path):
                             text=True)
     try:
         deadline = time.monotonic() + 120
-        while not list(out.glob("references/*/train/*.exr")):
+        while not [p for p in out.glob("references/*/train/*.exr") if not is_temporary_file(p.name)]:
             assert time.monotonic() < deadline and proc.poll() is None, proc.stderr.read()
             time.sleep(0.01)
         proc.send_signal(signal.SIGINT)                        # (Ctrl-C)
@@ -206,7 +207,7 @@ def test_4_a_signal_before_training_keeps_the_references_rendered(tmp_path):
             proc.kill()
     assert proc.returncode == 130, err
     assert err.strip().splitlines()[-1].startswith("mi-gs: stopped by SIGINT before training began"), err
-    done = len(list(out.glob("references/*/*/*.exr")))
+    done = len([p for p in out.glob("references/*/*/*.exr") if not is_temporary_file(p.name)])
     assert 0 < done < 42
     r = run("optimize", scene, "-o", out, "--views", 40, "--test-views", 2, "--iterations", 5)
     assert r.returncode == 0 and f"rendering {42 - done} of 42 references" in r.stderr, r.stderr
@@ -266,10 +267,14 @@ def test_8_a_scene_without_light_is_refused(tmp_path):
 
 # ---------------------------------------------------------------------------------------------- 9: true messages
 def test_9_a_full_disk_names_the_file_being_written(data, trained, tmp_path):
-    r = limited(["optimize", data, "-o", tmp_path / "full", *TRAIN], 60_000)
+    r = limited(["optimize", data, "-o", tmp_path / "full", *TRAIN, "--init", "cube"], 60_000)
     assert_one_line_error(r, str(tmp_path / "full" / "checkpoints" / "ckpt.npz"))
     assert ".tmp" not in r.stderr
     assert not [p for p in (tmp_path / "full").rglob("*.tmp*")]
+    # triangulating the initial points (pycolmap's database, its images): the folder named, no half-made cache left
+    r = limited(["optimize", data, "-o", tmp_path / "full2", *TRAIN, "--init", "triangulate"], 20_000)
+    assert_one_line_error(r, str(tmp_path / "full2" / "points"), "is the disk full")
+    assert not list((tmp_path / "full2").glob("points/*/*"))
     r = limited(["export", trained / "point_cloud.ply", "-o", tmp_path / "copy.ply"], 4_000)
     assert_one_line_error(r, str(tmp_path / "copy.ply"))
     assert ".tmp" not in r.stderr and not list(tmp_path.glob(".copy.ply*"))

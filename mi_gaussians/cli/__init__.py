@@ -20,7 +20,7 @@ from .args import add_variant, set_variant
 from .errors import EXIT_INPUT_ERROR, EXIT_INTERRUPTED, InputError, one_line, os_error_line
 
 #: The commands, in the order ``mi-gs -h`` lists them: each a module of this package.
-COMMANDS = ("info", "render", "optimize", "sweep", "eval", "export", "view", "convert")
+COMMANDS = ("info", "render", "optimize", "sweep", "points", "eval", "export", "view", "convert")
 
 
 class _Parser(argparse.ArgumentParser):

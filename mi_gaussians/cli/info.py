@@ -42,6 +42,13 @@ def _ply_info(path: Path) -> dict:
 
     from ..conventions import sh_degree_from_coeff_count, sigmoid
     from ..model.ply import read_ply
+    from ..model.point_ply import is_point_cloud, read_points
+
+    if is_point_cloud(path):
+        xyz, _ = read_points(path)
+        return {"file": str(path), "points": int(len(xyz)),
+                **({"bbox_min": xyz.min(0).round(4).tolist(), "bbox_max": xyz.max(0).round(4).tolist()}
+                   if len(xyz) else {})}
 
     p = read_ply(path)
     n = p["means"].shape[0]

@@ -11,7 +11,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Callable
 
-from ..config import (DEPTH_WEIGHT_DECAY, EXPOSURES, RIGS, SCENE_INITS, STRATEGIES, DataConfig, MCMCConfig,
+from ..config import (DEPTH_WEIGHT_DECAY, EXPOSURES, INITS, RIGS, SCENE_INITS, STRATEGIES, DataConfig, MCMCConfig,
                       OptimConfig, SceneConfig, SettingError, TrainConfig)
 from .args import background, field_of_view, finite_float, non_negative_int, positive_float, positive_int, sh_degree
 from .errors import InputError
@@ -73,6 +73,15 @@ def _resolution(cfg: TrainConfig, values, scene_file: bool) -> TrainConfig:
     if len(values) != 1:
         raise InputError("-r/--resolution takes one divisor for a dataset folder (e.g. -r 4)")
     return _set_fields(cfg, {"data.resolution": values[0]})
+
+
+def _init(cfg: TrainConfig, value: str, scene_file: bool) -> TrainConfig:
+    """--init: ``scene.init`` for a scene file, ``data.init`` for a dataset folder (each with its own choices)."""
+    key, allowed = ("scene.init", SCENE_INITS) if scene_file else ("data.init", INITS)
+    if value not in allowed:
+        kind = "a scene .xml" if scene_file else "a dataset folder"
+        raise InputError(f"--init {value}: for {kind} the initial points are {', '.join(allowed)}")
+    return _set_fields(cfg, {key: value})
 
 
 def _same_defines(a, b) -> bool:
@@ -174,10 +183,13 @@ def options() -> list[Option]:
                                           f"{FALLBACK_SPP})"}, scene=True),
         Option(("--linear",), ("scene.linear",), _store_true(
             "train on linear radiance (default: on the sRGB-encoded references)"), scene=True),
-        Option(("--init",), ("scene.init",), {
-            "choices": SCENE_INITS, "help": f"initial points (default {sc.init}): sampled on the shapes and coloured "
-                                            "by the references, random in the bounding box, or structure from "
-                                            "motion"}, scene=True),
+        Option(("--init",), ("data.init", "scene.init"), {
+            "choices": tuple(dict.fromkeys(INITS + SCENE_INITS)), "metavar": "INIT",
+            "help": f"initial points. A dataset folder: {' | '.join(INITS)} (default {d.init}: the dataset's own "
+                    "points, else triangulated from the posed images, else the random cube); a scene .xml: "
+                    f"{' | '.join(SCENE_INITS)} (default {sc.init}: sampled on the shapes and coloured by the "
+                    "references, random in the bounding box, or structure from motion)"},
+               give=_init),
         Option(("--init-points",), ("scene.init_points",), {
             "type": positive_int, "help": f"initial points for shapes/random (default {sc.init_points})"},
                scene=True),

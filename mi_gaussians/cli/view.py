@@ -3,6 +3,8 @@ came from."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from .args import (add_background, add_model_input, add_viewer_options, background, existing, is_model, start_viewer,
                    viewer_config)
 from .errors import InputError, warn
@@ -10,17 +12,30 @@ from .errors import InputError, warn
 
 def add_parser(sub) -> None:
     s = sub.add_parser("view", help="look at a model in the browser (viser): orbit, render modes, dataset cameras")
-    add_model_input(s, "model.ply|.splat|.spz, or an mi-gs optimize output folder",
+    add_model_input(s, "model.ply|.splat|.spz, a point-cloud .ply (mi-gs points), or an mi-gs optimize output folder",
                     antialiased="render with Mip-Splatting's 2D filter (default: as the run was trained)")
     s.add_argument("--camera", help="camera JSON to start from (default: the dataset's first camera)")
     add_background(s, "background colour (1 or 3 values; default: the run's)")
     add_viewer_options(s)
 
 
+def viewable_model(path: Path):
+    """The Gaussians of a model file; a point-cloud PLY (``mi-gs points``) as small opaque Gaussians, one per point
+    (SH degree 0, the size of the nearest-neighbour spacing scaled by 0.5)."""
+    from ..model.gaussians import Gaussians
+    from ..model.point_ply import is_point_cloud, read_points
+
+    if path.suffix.lower() == ".ply" and is_point_cloud(path):
+        xyz, rgb = read_points(path)
+        if not len(xyz):
+            return Gaussians.load(path)                   # (empty: the caller says so)
+        return Gaussians.from_points(xyz, rgb, sh_degree=0, initial_opacity=0.9, scale_factor=0.5)
+    return Gaussians.load(path)
+
+
 def run(args) -> int:
     from .. import run_folder
     from ..data.camera import Camera
-    from ..model.gaussians import Gaussians
     from ..runs import model_raster_config
     from ..viewer import StaticModel, Viewer
     from ..viewer_entries import default_camera, run_entries
@@ -42,7 +57,7 @@ def run(args) -> int:
             views, color_space, bg = run_entries(record, model.parent, warn)
     if args.background is not None:
         bg = background(args.background)
-    g = Gaussians.load(model)
+    g = viewable_model(model)
     if g.n == 0:
         raise InputError(f"{model}: the model has no Gaussians (nothing to look at)")
     initial = Camera.from_json(args.camera) if args.camera else None

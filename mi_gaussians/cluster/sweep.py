@@ -4,9 +4,9 @@
 No work is lost: runs checkpoint; a task whose worker dies (a killed process, a lost node) is run again by Ray
 (``retries``) and resumes from its checkpoint; a sweep run again on the same OUT skips the finished runs and resumes
 the others; a run that fails for a reason of its own (a bad dataset, a diverged loss) is recorded as failed with its
-one-line message, and the others go on. The scene files' references are rendered first, by Ray workers, into
-``OUT/references`` (shared by the runs of a scene). With ``address``, the cluster's nodes must see OUT at the same
-path (checked before anything starts).
+one-line message, and the others go on. The scene files' references are rendered first, by Ray workers, and the
+datasets' initial points triangulated (once each) into ``OUT/cache``, which the runs share. With ``address``, the
+cluster's nodes must see OUT at the same path (checked before anything starts).
 """
 
 from __future__ import annotations
@@ -24,7 +24,8 @@ from .ray_cluster import check_shared_folder, cluster_cpus, connected, setup_wor
 from .sweep_spec import PlannedRun, SweepSpec
 
 RUNS = "runs"
-REFERENCES = "references"
+CACHE = "cache"          # the runs' shared cache: a scene's references, a dataset's triangulated points
+OLD_CACHE = "references"  # (its name before the triangulated points joined it: a sweep started then goes on with it)
 SPEC = "spec.toml"
 
 
@@ -92,26 +93,38 @@ def _check_folders(spec: SweepSpec, out: Path, overwrite: bool) -> None:
                              "run again, or give another output folder")
 
 
-def _render_references(ray, spec: SweepSpec, runs, out: Path, variant: str, progress: bool, log) -> None:
-    """The references of the runs' scene files, rendered by Ray workers into OUT/references (each reference set
-    once: the runs of a scene with the same rig share it)."""
+def cache_folder(out: Path) -> Path:
+    """OUT/cache, or OUT/references in a sweep started by a version that named it so (its references are kept)."""
+    old = out / OLD_CACHE
+    return old if old.is_dir() and not (out / CACHE).exists() else out / CACHE
+
+
+def _prepare(ray, spec: SweepSpec, runs, out: Path, variant: str, progress: bool, log) -> None:
+    """What the runs share, made once before they start: the references of the scene files, rendered by Ray workers,
+    and the datasets' triangulated initial points, in OUT/cache. A dataset that fails here is left to its runs, which
+    record the failure with its message."""
     from ..runs import training_dataset
     from .references import RayFarm
 
     seen = set()
     workers = max(1, cluster_cpus(ray))
     for run in runs:
-        if not run.scene_file:
-            continue
         cfg = run.config
-        key = (run.dataset, cfg.scene, cfg.data.seed, cfg.data.test_every)
+        if run.scene_file:
+            key = (run.dataset, cfg.scene, cfg.data.seed, cfg.data.test_every)
+            cfg = dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, init="random", init_points=1))
+            farm = RayFarm(run.dataset, cfg.scene.defines, variant, workers=workers)
+        elif cfg.data.init in ("auto", "triangulate"):
+            key, farm = (run.dataset, cfg.data, cfg.triangulate), None
+        else:
+            continue
         if key in seen:
             continue
         seen.add(key)
-        only_refs = dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, init="random", init_points=1))
-        farm = RayFarm(run.dataset, cfg.scene.defines, variant, workers=workers)
-        training_dataset(run.dataset, only_refs, out, cache=str(out / REFERENCES), progress=progress, farm=farm,
-                         log=log)
+        try:
+            training_dataset(run.dataset, cfg, out, cache=str(cache_folder(out)), progress=progress, farm=farm, log=log)
+        except (ValueError, OSError, RuntimeError) as e:
+            log(f"{run.dataset}: {' '.join(str(e).split())[:300]} (its runs will say so)")
 
 
 def run_sweep(spec: SweepSpec, out: str | Path, variant: str, address: str | None = None, overwrite: bool = False,
@@ -147,10 +160,10 @@ def run_sweep(spec: SweepSpec, out: str | Path, variant: str, address: str | Non
             with connected(address) as ray:
                 if address:
                     check_shared_folder(ray, out)
-                _render_references(ray, spec, todo, out, variant, progress, log)
+                _prepare(ray, spec, todo, out, variant, progress, log)
                 task = ray.remote(max_calls=1)(train_task).options(num_cpus=spec.cpus, num_gpus=spec.gpus,
                                                                   max_retries=spec.retries, retry_exceptions=False)
-                cache = str(out / REFERENCES)
+                cache = str(cache_folder(out))
                 refs = {task.remote(run, str(out / RUNS / run.name), cache, variant): run for run in todo}
                 bar = tqdm(total=len(spec.runs), initial=len(rows), unit="run", desc="sweep", disable=not progress,
                            dynamic_ncols=True)

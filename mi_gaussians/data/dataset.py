@@ -95,6 +95,8 @@ class Dataset:
     color_space: str = "srgb"            # 'srgb' (PNG/JPEG values / 255, not linearized) or 'linear' (EXR)
     resolution: int = 1
     references: Path | None = None       # Mitsuba scenes: the folder of the cached reference renders
+    points_from: str = "layout"          # where points_xyz came from: 'layout' (the dataset's own, e.g. COLMAP's
+                                         # points3D), a random sampler ('cube', 'frustum'), 'triangulated', 'none'...
 
     @property
     def views(self) -> list[View]:
@@ -241,7 +243,7 @@ def _mask_file(masks_dir: Path, image: Path, name: str, file_size: tuple[int, in
 
 
 def _load_colmap(root: Path, builder: _Builder, test_every: int, n_points: int, seed: int, masks: bool,
-                 random_init: str):
+                 random_init: str, own_points: bool):
     model_dir = _colmap.find_model_dir(root)
     model = _colmap.read_model(model_dir)
     images_dir = root / "images"
@@ -270,12 +272,10 @@ def _load_colmap(root: Path, builder: _Builder, test_every: int, n_points: int, 
                                   None if undistorter else c.pinhole_intrinsics(), undistorter,
                                   f"{cam_file} (camera {c.camera_id})", reduced_file=reduced, mask_path=mask))
     train, test = _split_by_index(views, test_every)
-    if len(model.points_xyz):
-        return train, test, model.points_xyz, model.points_rgb
-    log.warning("%s: the model has no 3D points; using %d random points around the cameras", model.file("points3D"),
-                n_points)
+    if own_points and len(model.points_xyz):
+        return train, test, model.points_xyz, model.points_rgb, True
     return (train, test) + _random_points(train, n_points, seed, random_init,
-                                          lambda: _points_around(train, n_points, seed))
+                                          lambda: _points_around(train, n_points, seed)) + (False,)
 
 
 def _points_around(train: list[View], n_points: int, seed: int):
@@ -319,6 +319,7 @@ def _random_points(train: list[View], n_points: int, seed: int, random_init: str
     """Initial points for a layout without SfM points: ``cube()`` (the reference's), or the frustum sampler."""
     if n_points <= 0 or not train:
         return None, None
+    log.debug("initial points: %d random (%s)", n_points, random_init)
     if random_init == "frustum":
         return _pc.points_in_view(n_points, [v.camera for v in train], seed)
     return cube()
@@ -348,13 +349,15 @@ def _load_ngp(root: Path, builder: _Builder, test_every: int, n_points: int, see
 def load_dataset(path: str | os.PathLike, resolution: int = _DEFAULTS.resolution,
                  background=_DEFAULTS.background, test_every: int = _DEFAULTS.test_every,
                  random_points: int = _DEFAULTS.random_points, seed: int = _DEFAULTS.seed,
-                 masks: bool = _DEFAULTS.masks, random_init: str = _DEFAULTS.random_init) -> Dataset:
+                 masks: bool = _DEFAULTS.masks, random_init: str = "cube", own_points: bool = True) -> Dataset:
     """Load and validate a scene folder (layout detected, see the module docstring). Lazy: no pixels are decoded.
 
     resolution: divide the image size by this (``round(W / r) x round(H / r)``); background: (3,) colour that RGBA
     images are composited over; test_every: hold-out period for COLMAP/ngp (0: all train; Blender: 0 merges test into
     train); random_points / seed: initial points for layouts without SfM points (0: none); masks: use a COLMAP
-    scene's masks/ folder when there is one; random_init: 'cube' (the reference's) or 'frustum' (see pointcloud.py).
+    scene's masks/ folder when there is one; random_init: the sampler of random points, 'cube' (the reference's) or
+    'frustum' (see pointcloud.py; a run chooses by ``DataConfig.init``); own_points: start from the layout's own
+    points (COLMAP's points3D) when it has them, else (False) from random ones as a layout without points does.
     Defaults are those of :class:`mi_gaussians.config.DataConfig`.
     """
     bg = _check_options(resolution, background, test_every, random_points, seed)
@@ -365,9 +368,10 @@ def load_dataset(path: str | os.PathLike, resolution: int = _DEFAULTS.resolution
     root = Path(path)
     layout = detect_layout(root)
     builder = _Builder(int(resolution), bg)
+    own = False
     if layout == "colmap":
-        train, test, xyz, rgb = _load_colmap(root, builder, int(test_every), int(random_points), int(seed), bool(masks),
-                                             random_init)
+        train, test, xyz, rgb, own = _load_colmap(root, builder, int(test_every), int(random_points), int(seed),
+                                                  bool(masks), random_init, bool(own_points))
     elif layout == "blender":
         train, test, xyz, rgb = _load_blender(root, builder, int(test_every), int(random_points), int(seed),
                                               random_init)
@@ -383,7 +387,8 @@ def load_dataset(path: str | os.PathLike, resolution: int = _DEFAULTS.resolution
         dup = next(n for n in names if names.count(n) > 1)
         raise ValueError(f"{root}: image {dup!r} appears more than once")
     return Dataset(root=root, layout=layout, train=train, test=test, points_xyz=xyz, points_rgb=rgb,
-                   background=bg, color_space=spaces.pop(), resolution=int(resolution))
+                   background=bg, color_space=spaces.pop(), resolution=int(resolution),
+                   points_from="layout" if own else (random_init if xyz is not None else "none"))
 
 
 # ---------------------------------------------------------------------------------------------------- verification
@@ -421,13 +426,13 @@ def verify_images(views: list[View], progress: bool = False) -> None:
         raise ValueError(problems[0] + more)
 
 
-FINGERPRINT_VERSION = "v2"
+FINGERPRINT_VERSION = "v3"     # v3: initial points count only when they are the dataset's own
 
 
 def fingerprint(ds: Dataset) -> str:
     """A content fingerprint of what a run trains on: every view's name, camera (and lens distortion) and image (and
-    mask) file bytes, the initial points, the background and the colour encoding (SHA-256, hex). A resumed run must
-    see the same.
+    mask) file bytes, the dataset's own points (not random or triangulated ones: those follow from the rest and the
+    settings), the background and the colour encoding (SHA-256, hex). A resumed run must see the same.
 
     Canonical, so that how a file is parsed cannot change it: poses and intrinsics rounded to 1e-9, points in sorted
     order (a COLMAP model's points come in file order now, in pycolmap's hash order before). The value carries its
@@ -456,7 +461,7 @@ def fingerprint(ds: Dataset) -> str:
                     with open(path, "rb") as f:
                         for block in iter(lambda: f.read(1 << 20), b""):
                             h.update(block)
-    if ds.points_xyz is not None:
+    if ds.points_xyz is not None and ds.points_from == "layout":
         pts = np.concatenate([np.asarray(ds.points_xyz, np.float32).reshape(-1, 3),
                               np.asarray(ds.points_rgb, np.float32).reshape(-1, 3)], axis=1)
         h.update(np.ascontiguousarray(pts[np.lexsort(pts.T[::-1])]).tobytes())

@@ -96,4 +96,4 @@ def load_scene_dataset(path: str | os.PathLike, cfg: SceneConfig = SceneConfig()
                                          seed=seed, linear=cfg.linear, log=log)
     return Dataset(root=p, layout="mitsuba", train=train, test=test, points_xyz=xyz, points_rgb=rgb,
                    background=np.asarray(bg, dtype=np.float32), color_space="linear" if cfg.linear else "srgb",
-                   references=cache_dir)
+                   references=cache_dir, points_from=cfg.init)

@@ -53,7 +53,6 @@ _MAX_LINE_BYTES = 1 << 16
 
 class PLYError(ValueError):
     """A PLY file that cannot be read or written as 3DGS Gaussians. ``str(e)`` is one line: ``"<path>: <problem>"``."""
-
     def __init__(self, path, problem: str):
         self.path = os.fspath(path)
         self.problem = " ".join(str(problem).split())
@@ -261,6 +260,20 @@ def _vertex_layout(header: PlyHeader, path) -> tuple[PlyElement, dict[str, list[
     groups = dict(_GROUPS)
     groups["f_rest"] = tuple(expected_rest)
     return vertex, groups, _DEGREE_OF_F_REST[m]
+
+
+def read_vertices(path: str | os.PathLike) -> tuple[PlyElement, np.ndarray]:
+    """The ``vertex`` element of any PLY file (binary or ascii) and its records (a structured array, every scalar
+    property by name): for other kinds of PLY than 3DGS models, e.g. point clouds. PLYError naming the file."""
+    try:
+        with open(path, "rb") as f:
+            header = _parse_header(f, path)
+            if (vertex := header.element("vertex")) is None:
+                raise PLYError(path, "no 'vertex' element")
+            return vertex, (_read_ascii_vertices(f, header, vertex, path) if header.format == "ascii" else
+                            _read_binary_vertices(f, header, vertex, path, os.fstat(f.fileno()).st_size))
+    except OSError as e:
+        raise PLYError(path, f"cannot read file: {e.strerror or e}") from None
 
 
 def _read_binary_vertices(f, header: PlyHeader, vertex: PlyElement, path, file_size: int) -> np.ndarray:
