@@ -29,6 +29,15 @@ def run(*args):
                           cwd=tempfile.gettempdir())
 
 
+def checkpoint_step(out: Path) -> int:
+    """The iteration of a run folder's checkpoint, 0 while there is none (or it is being replaced)."""
+    try:
+        with np.load(out / "checkpoints" / "ckpt.npz") as z:
+            return int(json.loads(bytes(z["meta"]).decode())["step"])
+    except (OSError, KeyError, ValueError, EOFError):
+        return 0
+
+
 #: What a run says before training as it goes (where its initial points come from), not part of an error.
 PROGRESS_LINES = ("initial points: ", "triangulation [")
 

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from mi_gaussians.cluster.sweep_spec import read_spec
-from test_cli import assert_one_line_error, run
+from test_cli import assert_one_line_error, checkpoint_step, run
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"
@@ -79,14 +79,6 @@ def test_sweep_of_two_datasets_by_two_settings_and_again(ray_cluster, tmp_path):
     assert_one_line_error(run("sweep", spec, "-o", out, "--address", ray_cluster), "holds a run with other settings",
                           "optim.iterations 60 -> 70")
     assert files(out / "runs") == before
-
-
-def checkpoint_step(folder: Path) -> int:
-    try:
-        with np.load(folder / "checkpoints" / "ckpt.npz") as z:
-            return int(json.loads(bytes(z["meta"]).decode())["step"])
-    except (OSError, KeyError, ValueError, EOFError):
-        return 0
 
 
 @pytest.fixture(scope="module")

@@ -19,10 +19,10 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
 from mi_gaussians.io_utils import is_temporary_file
 from synthetic_dataset import make_blender_dataset
+from test_cli import checkpoint_step
 
 EXE = str(Path(sys.executable).parent / "mi-gs")
 ITERATIONS = 400
@@ -33,14 +33,6 @@ ARGS = ["--iterations", str(ITERATIONS), "--white-background", "--sh-degree", "1
 
 def temporary_files(out: Path) -> list[Path]:
     return [p for p in out.rglob("*") if is_temporary_file(p.name)]
-
-
-def checkpoint_step(out: Path) -> int:
-    try:
-        with np.load(out / "checkpoints" / "ckpt.npz") as z:
-            return int(json.loads(bytes(z["meta"]).decode())["step"])
-    except (OSError, KeyError, ValueError, EOFError):
-        return 0
 
 
 def _start(data: Path, out: Path, resume: bool) -> subprocess.Popen:

@@ -20,7 +20,7 @@ import pytest
 
 from mi_gaussians import run_folder
 from mi_gaussians.io_utils import is_temporary_file
-from test_cli import assert_one_line_error, message_lines, run
+from test_cli import assert_one_line_error, checkpoint_step, message_lines, run
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"
@@ -151,14 +151,6 @@ def test_3_optimize_and_eval_never_write_into_the_dataset(data, trained):
 
 
 # ---------------------------------------------------------------------------------------------------- 4: signals
-def _checkpoint_step(out: Path) -> int:
-    try:
-        with np.load(out / "checkpoints" / "ckpt.npz") as z:
-            return int(json.loads(bytes(z["meta"]).decode())["step"])
-    except (OSError, KeyError, ValueError, EOFError):
-        return 0
-
-
 def test_4_sigterm_checkpoints_the_iteration_and_says_how_to_resume(data, tmp_path):
     out = tmp_path / "run"
     args = [EXE, "optimize", str(data), "-o", str(out), "--iterations", "20000", "--checkpoint-every", "100",
@@ -167,7 +159,7 @@ def test_4_sigterm_checkpoints_the_iteration_and_says_how_to_resume(data, tmp_pa
                             text=True)
     try:
         deadline = time.monotonic() + 120
-        while _checkpoint_step(out) < 100:
+        while checkpoint_step(out) < 100:
             assert time.monotonic() < deadline and proc.poll() is None, proc.stderr.read()
             time.sleep(0.02)
         proc.send_signal(signal.SIGTERM)
@@ -179,7 +171,7 @@ def test_4_sigterm_checkpoints_the_iteration_and_says_how_to_resume(data, tmp_pa
     (line,) = message_lines(err)
     step = int(line.split("at iteration ")[1].split(",")[0])
     assert line.startswith("mi-gs: stopped by SIGTERM at iteration ") and step >= 100
-    assert _checkpoint_step(out) == step                       # not the periodic one: the iteration it stopped at
+    assert checkpoint_step(out) == step                       # not the periodic one: the iteration it stopped at
     assert line.endswith(f"continue with: mi-gs optimize {data} -o {out} --resume")
     r = run("optimize", data, "-o", out, "--resume", "--iterations", step + 5, "--quiet")
     assert r.returncode == 0, r.stderr
