@@ -117,8 +117,10 @@ def test_checkpoint_and_resume_keep_the_transforms(scene, tmp_path, one_thread):
 
 def test_known_per_image_gains_are_recovered(scene, tmp_path):  # noqa: F811
     """Training images scaled by known per-image gains (on a black background, none above 1: nothing clips): the
-    fitted transforms are those gains times one matrix common to all images (which the model's colours can absorb),
-    within 5 %. SH degree 0: view-dependent colour could absorb gains that vary with the direction."""
+    fitted transforms are those gains times one matrix common to all images (which the model's colours could absorb),
+    within 5 %, and that matrix is the one that makes their mean the identity (the gauge the trainer holds: the model
+    keeps the images' mean exposure). SH degree 0: view-dependent colour could absorb gains that vary with the
+    direction."""
     import shutil
 
     from PIL import Image
@@ -151,6 +153,8 @@ def test_known_per_image_gains_are_recovered(scene, tmp_path):  # noqa: F811
     print("distance of E_i / g_i from their mean, relative:", np.round(spread, 3))
     assert np.all(spread < 0.05), spread
     assert np.abs(got[:, :, 3]).max() < 0.05                         # (black stays black: no offsets)
+    np.testing.assert_allclose(got.mean(axis=0), np.eye(3, 4), atol=1e-5)
+    np.testing.assert_allclose(common, np.eye(3) / gains.mean(), atol=0.05 / gains.mean())
 
 
 def test_half_image_protocol_scores_what_a_transform_explains(scene):  # noqa: F811
