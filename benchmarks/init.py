@@ -1,6 +1,6 @@
 """Initial points of posed datasets without points of their own, in the same run with the same seed: ``--init auto``
-(the default: here, points triangulated from the posed training images), the reference's random cube and the frustum
-sampler, at 3k and 7k iterations. Prints PSNR / SSIM on the held-out views, the final count, the initial point count
+(the default: here, points triangulated from the posed training images, joined by the cube's when the images have
+alpha), the reference's random cube and the frustum sampler, at 3k and 7k iterations. Prints PSNR / SSIM on the held-out views, the final count, the initial point count
 and the seconds each stage of the triangulation took.
 
     python benchmarks/init.py                                   # every dataset below, 3k and 7k
@@ -75,12 +75,19 @@ def dataset(name: str, root: Path, cache: Path) -> tuple[Path, list[str]]:
 
 
 def triangulation(run: Path) -> tuple[int | None, dict]:
-    """(initial point count, seconds per stage) of a run's triangulation (its cached result), (None, {}) without."""
+    """(point count, seconds per stage) of a run's triangulation (its cached result), (None, {}) without."""
     found = sorted((run / "points").glob("*/points.npz"))
     if not found:
         return None, {}
     with np.load(found[0]) as z:
         return int(len(z["xyz"])), json.loads(str(z["seconds"]))
+
+
+def initial_count(run: Path) -> int:
+    """The Gaussians a run started from (its first logged iteration: nothing is densified or pruned before 500)."""
+    history = json.loads((run / "history.json").read_text())
+    assert history["iteration"][0] < 500, history["iteration"][0]
+    return int(history["gaussians"][0])
 
 
 def main(argv=None) -> int:
@@ -102,18 +109,21 @@ def main(argv=None) -> int:
             for init in INITS:
                 run = root / name / f"{init}_{iterations}"
                 m = train(src, run, iterations, extra + ["--init", init])
-                count, seconds = triangulation(run)
-                rows.append((name, iterations, init, count, seconds, m))
+                triangulated, seconds = triangulation(run)
+                count = initial_count(run)
+                rows.append((name, iterations, init, count, triangulated, seconds, m))
                 print(f"{name} {iterations} {init}: {m['mean']['psnr']:.2f} dB, {m['gaussians']:,} Gaussians, "
-                      f"initial points {count if count is not None else 'random'}", file=sys.stderr, flush=True)
+                      f"initial points {count:,} ({triangulated or 0:,} triangulated)", file=sys.stderr, flush=True)
     print("\nPSNR / SSIM on the held-out views; one run each, 2-core machine\n")
     print("| dataset | iterations | --init | initial points | triangulation s (images, features, matching, "
           "triangulation) | PSNR | SSIM | Gaussians | minutes |")
     print("|---|---:|---|---:|---|---:|---:|---:|---:|")
-    for name, iterations, init, count, seconds, m in rows:
+    for name, iterations, init, count, triangulated, seconds, m in rows:
         stages = " + ".join(f"{seconds[k]:.1f}" for k in ("images", "features", "matching", "triangulation")
                             if k in seconds) or ""
-        points = f"{count:,}" if count is not None else "100,000 random"
+        random = count - (triangulated or 0)
+        points = " + ".join(([f"{triangulated:,} triangulated"] if triangulated else [])
+                            + ([f"{random:,} random"] if random else []))
         print(f"| {name} | {iterations:,} | {init} | {points} | {stages} | {m['mean']['psnr']:.2f} | "
               f"{m['mean']['ssim']:.4f} | {m['gaussians']:,} | {m['training_seconds'] / 60:.1f} |")
     return 0

@@ -17,7 +17,8 @@ from dataclasses import dataclass
 #: reads (``mi_gaussians.optim.strategies`` gives each its class; a test checks that both list the same names).
 STRATEGIES = {"default": "densify", "mcmc": "mcmc"}
 #: ``DataConfig.init``: where a run's initial points come from. 'auto': the layout's own points (COLMAP) when it has
-#: them, else triangulated from the posed images, else (too few) the random cube; 'points' the layout's own only;
+#: them, else triangulated from the posed images (joined by the random ones when the images have alpha: an object on an
+#: empty background; runs.initial_points), else (too few) the random cube; 'points' the layout's own only;
 #: 'triangulate' always; 'cube' and 'frustum' random (RANDOM_INITS, data/pointcloud.py).
 INITS = ("auto", "points", "triangulate", "cube", "frustum")
 #: The random samplers among them (where the initial random points of layouts without points lie).
@@ -38,8 +39,9 @@ class DataConfig:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # RGBA images are composited over this colour
     test_every: int = 8                      # COLMAP / single-transforms layouts: index % test_every == 0 is test (0: no test split)
     init: str = "auto"                       # initial points (INITS): the layout's own, else triangulated from the
-                                             # posed images (data/triangulate.py), else the reference's random cube
-    random_points: int = 100_000             # random initial points ('cube', 'frustum', and the fallback of 'auto')
+                                             # posed images (data/triangulate.py; + the random ones when the images
+                                             # have alpha), else the reference's random cube
+    random_points: int = 100_000             # random initial points ('cube', 'frustum', and those of 'auto')
     masks: bool = True                       # COLMAP layout: composite each image over the background through its
                                              # mask in masks/ (white = object) when that folder exists
     seed: int = 0

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -109,8 +110,30 @@ def test_auto_prefers_a_layouts_own_points_then_triangulation(sphere, tmp_path):
     lines = []
     ds = training_dataset(colmap, _cfg(), tmp_path / "a", log=lines.append)
     assert ds.points_from == "layout" and lines == [f"initial points: the dataset's own {len(ds.points_xyz):,}"]
-    ds = training_dataset(sphere, _cfg(), tmp_path / "b", log=lines.append)
-    assert ds.points_from == "triangulated"
+    # RGBA images (an object on an empty background): the triangulated points and the random ones (measured: README)
+    lines.clear()
+    ds = training_dataset(sphere, _cfg("data.random_points=500"), tmp_path / "b", log=lines.append)
+    tri = training_dataset(sphere, _cfg("data.init=triangulate", "data.random_points=500"), tmp_path / "b",
+                           log=None)
+    cube = training_dataset(sphere, _cfg("data.init=cube", "data.random_points=500"), tmp_path / "b", log=None)
+    assert tri.points_from == "triangulated" and ds.points_from == "triangulated+cube"
+    np.testing.assert_array_equal(ds.points_xyz, np.concatenate([tri.points_xyz, cube.points_xyz]))
+    np.testing.assert_array_equal(ds.points_rgb, np.concatenate([tri.points_rgb, cube.points_rgb]))
+    (line,) = [ln for ln in lines if ln.startswith("initial points")]
+    assert line == (f"initial points: {len(tri.points_xyz):,} triangulated from the 14 posed training images + the "
+                     "500 random (cube), since the images have alpha (an object on an empty background)")
+    # the same images without alpha (a scene that fills the views): the triangulated points alone
+    from PIL import Image
+
+    opaque = tmp_path / "opaque"
+    shutil.copytree(sphere, opaque)
+    for png in opaque.glob("*/*.png"):
+        Image.open(png).convert("RGB").save(png)
+    lines.clear()
+    ds = training_dataset(opaque, _cfg("data.random_points=500"), tmp_path / "e", log=lines.append)
+    assert ds.points_from == "triangulated" and len(ds.points_xyz) >= 100
+    assert [ln for ln in lines if ln.startswith("initial points")] == [
+        f"initial points: {len(ds.points_xyz):,} triangulated from the 14 posed training images"]
     with pytest.raises(ValueError, match="has no points of its own"):
         training_dataset(sphere, _cfg("data.init=points"), tmp_path / "c", log=None)
     ds = training_dataset(sphere, _cfg("data.init=cube", "data.random_points=1000"), tmp_path / "d", log=None)
