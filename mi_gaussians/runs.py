@@ -279,7 +279,7 @@ def _has_alpha(ds: Dataset) -> bool:
     """Whether the training images carry alpha (an RGBA file or a mask; the first image speaks for all): 'auto' then
     adds the random points to the triangulated ones. Measured (benchmarks/init.py, README): an object on an empty
     background trains better from both (the random points fill what was not triangulated: mi_objects/blender 3k,
-    31.98 dB against 31.28 triangulated alone and 31.84 the cube alone), while in a scene that fills the views
+    31.95 dB against 31.28 triangulated alone and 31.84 the cube alone), while in a scene that fills the views
     random points float in front of the cameras (room_blender 3k: 8.31 dB with them, 31.11 without)."""
     return bool(ds.train) and ds.train[0].loader.load(ds.train[0].image_path)[1] is not None
 

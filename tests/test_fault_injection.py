@@ -61,6 +61,21 @@ def _kill_while_writing(proc: subprocess.Popen, out: Path, deadline: float) -> b
     return False
 
 
+def _finished_like_an_uninterrupted_run(data: Path, out: Path, straight: Path, args: list[str],
+                                       iterations: int) -> str:
+    """The interrupted-and-resumed run in ``out`` finished all ``iterations`` with no temporary file left, and its
+    test PSNR is within 0.5 dB of the same run trained without interruption in ``straight``; both PSNRs, as text."""
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["iterations"] == iterations
+    assert not temporary_files(out), temporary_files(out)
+    res = subprocess.run([EXE, "optimize", str(data), "-o", str(straight), *args],
+                         cwd=tempfile.gettempdir(), capture_output=True, text=True, timeout=900)
+    assert res.returncode == 0, res.stderr[-3000:]
+    other = json.loads((straight / "metrics.json").read_text())
+    assert abs(metrics["mean"]["psnr"] - other["mean"]["psnr"]) < 0.5, (metrics["mean"], other["mean"])
+    return f"{metrics['mean']['psnr']:.2f} against {other['mean']['psnr']:.2f} uninterrupted"
+
+
 def test_kill_9_at_random_moments_then_resume(tmp_path):
     data = make_blender_dataset(tmp_path / "scene", n_train=12, n_test=3, size=48)
     out = tmp_path / "killed"
@@ -102,18 +117,10 @@ def test_kill_9_at_random_moments_then_resume(tmp_path):
     assert mid_write >= 1, "no kill landed while a checkpoint was being written"
     assert steps == sorted(steps), f"a resume went back: {steps}"
     assert steps[-1] > ITERATIONS // 2, f"the kills did not cover the run: {steps}"
-    metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["iterations"] == ITERATIONS
-    assert not temporary_files(out), temporary_files(out)
     assert not (out / ".mi-gs.lock").exists() or (out / ".mi-gs.lock").read_text().strip() == ""
-
-    res = subprocess.run([EXE, "optimize", str(data), "-o", str(tmp_path / "straight"), *ARGS],
-                         cwd=tempfile.gettempdir(), capture_output=True, text=True, timeout=900)
-    assert res.returncode == 0, res.stderr[-3000:]
-    straight = json.loads((tmp_path / "straight" / "metrics.json").read_text())
-    assert abs(metrics["mean"]["psnr"] - straight["mean"]["psnr"]) < 0.5, (metrics["mean"], straight["mean"])
+    psnr = _finished_like_an_uninterrupted_run(data, out, tmp_path / "straight", ARGS, ITERATIONS)
     print(f"{kills} kills ({mid_write} during a checkpoint write), {resumes} resumes; checkpoint steps {steps}; "
-          f"PSNR {metrics['mean']['psnr']:.2f} against {straight['mean']['psnr']:.2f} uninterrupted")
+          f"PSNR {psnr}")
 
 
 TERMS = 20
@@ -183,16 +190,9 @@ def test_sigterm_at_random_moments_checkpoints_and_resumes(tmp_path):
     assert proc.returncode == 0, (tmp_path / "stderr.txt").read_text()[-2000:]
     assert before_training + importing >= 2 and len(stopped_at) >= 10, (before_training, importing, stopped_at)
     assert any(s % 10 for s in stopped_at), stopped_at                # (not only the periodic checkpoints)
-    metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["iterations"] == TERM_ITERATIONS
-    assert not temporary_files(out), temporary_files(out)
-    res = subprocess.run([EXE, "optimize", str(data), "-o", str(tmp_path / "straight"), *TERM_ARGS],
-                         cwd=tempfile.gettempdir(), capture_output=True, text=True, timeout=900)
-    assert res.returncode == 0, res.stderr[-3000:]
-    straight = json.loads((tmp_path / "straight" / "metrics.json").read_text())
-    assert abs(metrics["mean"]["psnr"] - straight["mean"]["psnr"]) < 0.5, (metrics["mean"], straight["mean"])
+    psnr = _finished_like_an_uninterrupted_run(data, out, tmp_path / "straight", TERM_ARGS, TERM_ITERATIONS)
     print(f"{signals} SIGTERMs ({importing} while importing, {before_training} before training); stopped at "
-          f"{stopped_at}; PSNR {metrics['mean']['psnr']:.2f} against {straight['mean']['psnr']:.2f} uninterrupted")
+          f"{stopped_at}; PSNR {psnr}")
 
 
 def test_sigterm_after_pycolmap_was_imported_checkpoints(tmp_path):

@@ -1,7 +1,8 @@
 """Initial points triangulated from known poses (``data.init``, ``mi_gaussians.data.triangulate``): on a textured
 sphere rendered by Mitsuba (known geometry) the points lie on its surface; the cache is reused; 'auto' takes a
-layout's own points, else triangulates, else falls back to the cube saying why; the errors (one image, one shared
-centre, no texture); the pairs chosen from the poses; ``mi-gs points`` and the viewer's point clouds."""
+layout's own points, else triangulates (adding the random points when the images have alpha), else falls back to
+the cube saying why; the errors (one image, one shared centre, no texture); the pairs chosen from the poses;
+``mi-gs points`` and the viewer's point clouds."""
 
 from __future__ import annotations
 

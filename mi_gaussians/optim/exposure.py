@@ -8,8 +8,10 @@ E[:3, 3]``). The transforms start at the identity, so the first iterations are t
 Unlike the reference, each step holds the transforms' mean at the identity (each matrix moved by the same amount
 after Adam's step): a transform shared by every image could as well live in the model's colours, and without this
 the two drift together (measured on mi_objects/colmap, 7k: -3.8 dB on the held-out views rendered as they are, which
-see no transform). The model keeps the images' mean exposure. They belong to the images, not to the scene: the model (the PLY, the exports) never holds them; ``exposure.json`` in the
-run folder does, name -> 3 x 4 matrix, as the reference writes it.
+see no transform; -1.0 dB with the mean held). The model keeps the images' mean exposure.
+
+The transforms belong to the images, not to the scene: the model (the PLY, the exports) never holds them;
+``exposure.json`` in the run folder does, name -> 3 x 4 matrix, as the reference writes it.
 
 :class:`Exposure` owns them as :class:`~.adam.GaussianAdam` owns the Gaussians: its own ``mi.ad.Adam`` (PyTorch's
 defaults, as the reference's ``torch.optim.Adam([self._exposure])``: eps 1e-8, betas 0.9 / 0.999), the learning rate
