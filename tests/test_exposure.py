@@ -80,6 +80,28 @@ def _exposure_cfg(cfg, **optim):
     return dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, exposure="affine", **optim))
 
 
+
+def test_a_step_moves_only_the_transform_of_the_view_it_saw():
+    """Each step sees one training view, so only that image's transform has a gradient: Adam's moments and momentum
+    of the others stay as they were (a sparse step), and the rest of what moves is the gauge's common shift. With a
+    dense Adam, image 0's momentum from the first step would keep moving it in the second."""
+    rng = np.random.default_rng(2)
+    x = owned_tensor(rng.random((4, 5, 3)).astype(np.float32))
+    target = owned_tensor(rng.random((4, 5, 3)).astype(np.float32))
+    ex = Exposure(3)
+    ex.set_learning_rate(0.01)
+    before = []
+    for index in (0, 1):
+        before.append(ex.matrices().reshape(3, 12))
+        dr.backward(dr.sum(dr.square(ex.apply(x, index) - target).array))
+        ex.step()
+    after = ex.matrices().reshape(3, 12)
+    moved = after - before[1]                                          # (the second step, which saw image 1)
+    np.testing.assert_allclose(moved[0], moved[2], atol=1e-6)          # image 0 moved as image 2, which was never seen:
+    assert np.abs(moved[0]).max() > 0                                  # by the gauge's shift alone, -1/3 of image 1's
+    np.testing.assert_allclose(moved[1], -2 * moved[0], atol=1e-6)     # own step (which kept the mean: +2/3 of it)
+    np.testing.assert_allclose(after.mean(axis=0), np.eye(3, 4).ravel(), atol=1e-6)
+
 @pytest.mark.parametrize("freeze", [True, False])
 def test_an_identity_transform_trains_bit_for_bit_as_without(scene, tmp_path, one_thread, freeze):  # noqa: F811
     from mi_gaussians.optim.trainer import Trainer
