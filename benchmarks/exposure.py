@@ -1,6 +1,6 @@
-"""Exposure compensation at 7k iterations: each dataset trained without and with ``--exposure``, both scored on the
-held-out views by the two protocols (``mi-gs eval``): the whole image as rendered, and the 2024 reference's (a colour
-transform fitted on the left half of each view, the right half scored).
+"""Exposure compensation at 7k iterations: each dataset trained without it, with ``--exposure`` (affine) and with
+``--exposure bilateral``, each scored on the held-out views by the two protocols (``mi-gs eval``): the whole image as
+rendered, and the 2024 reference's (a colour transform fitted on the left half of each view, the right half scored).
 
     python benchmarks/exposure.py fox maryrose mi_objects_colmap --coarser 2
 
@@ -22,7 +22,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from cli_run import train  # noqa: E402
 from strategies import DATA, DATASETS, ITERATIONS, coarser  # noqa: E402
 
-SETUPS = {"plain": [], "exposure": ["--exposure"]}
+SETUPS = {"plain": [], "exposure": ["--exposure"], "bilateral": ["--exposure", "bilateral"]}
 
 
 def evaluate(run: Path) -> dict:
@@ -37,6 +37,8 @@ def main(argv=None) -> int:
     ap.add_argument("datasets", nargs="+", choices=sorted(DATASETS))
     ap.add_argument("--out", default="/tmp/mi_gs_exposure")
     ap.add_argument("--coarser", type=int, default=1, metavar="K")
+    ap.add_argument("--setups", nargs="+", choices=tuple(SETUPS), default=list(SETUPS),
+                    help="plain, exposure (--exposure: affine), bilateral (--exposure bilateral); default all")
     args = ap.parse_args(argv)
     rows = []
     for name in args.datasets:
@@ -47,7 +49,8 @@ def main(argv=None) -> int:
             print(f"{name}: {src} not found, skipped", file=sys.stderr)
             continue
         res = "-r" + extra[extra.index("-r") + 1] if "-r" in extra else "-r1"
-        for setup, options in SETUPS.items():
+        for setup in args.setups:
+            options = SETUPS[setup]
             run = Path(args.out) / res / name / setup
             metrics = train(src, run, ITERATIONS, extra + options)
             e = evaluate(run)

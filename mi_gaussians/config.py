@@ -27,8 +27,9 @@ RANDOM_INITS = ("cube", "frustum")
 RIGS = ("auto", "sensors", "hemisphere", "sphere")
 #: ``SceneConfig.init``: the initial points of a Mitsuba scene.
 SCENE_INITS = ("shapes", "random", "sfm")
-#: ``OptimConfig.exposure``: per-image colour compensation ('affine': the 2024 reference's --train_test_exp).
-EXPOSURES = ("off", "affine")
+#: ``OptimConfig.exposure``: per-image colour compensation ('affine': the 2024 reference's --train_test_exp;
+#: 'bilateral': gsplat's bilateral grids).
+EXPOSURES = ("off", "affine", "bilateral")
 #: ``--depth-weight W`` decays from W to W / DEPTH_WEIGHT_DECAY (the 2024 reference's 1.0 to 0.01).
 DEPTH_WEIGHT_DECAY = 100.0
 
@@ -111,9 +112,14 @@ class OptimConfig:
     depth_weight_final: float = 0.0          # ... decaying exponentially to this over position_lr_max_steps (--depth-weight W:
                                              # W to W / DEPTH_WEIGHT_DECAY, the 2024 reference's 1.0 to 0.01)
     exposure: str = "off"                    # --exposure: 'affine', a 3x4 colour transform per training image before
-                                             # the loss (EXPOSURES; optim/exposure.py)
-    exposure_lr_init: float = 0.01           # its Adam's rate, decaying exponentially over the run's iterations
-    exposure_lr_final: float = 0.001         # ... to this (the 2024 reference's values)
+                                             # the loss (EXPOSURES; optim/exposure.py), or 'bilateral', a grid of
+                                             # them (optim/bilateral.py)
+    exposure_lr_init: float = 0.01           # affine: its Adam's rate, decaying exponentially over the run's
+    exposure_lr_final: float = 0.001         # iterations to this (the 2024 reference's values)
+    exposure_grid: tuple[int, int, int] = (16, 16, 8)   # bilateral: cells along x, y and the guidance (gsplat's)
+    exposure_grid_lr: float = 2e-3           # bilateral: its Adam's rate (gsplat's: warmed up over 1,000 steps,
+                                             # then decaying to 1 % over the run's iterations)
+    exposure_grid_tv: float = 10.0           # bilateral: weight of the grids' total variation (gsplat's)
 
     def with_depth_weight(self, weight: float) -> "OptimConfig":
         """Depth supervision of weight ``weight`` decaying to ``weight / DEPTH_WEIGHT_DECAY`` (``--depth-weight``)."""
@@ -331,7 +337,7 @@ RULES: dict[str, "Range | tuple[str, ...]"] = {
     "data.background": Range(0),
     "optim.iterations": _COUNT, "optim.position_lr_max_steps": _COUNT, "optim.sh_degree": Range(0, 3),
     "optim.sh_increase_interval": _COUNT, "optim.lambda_dssim": _FRACTION, "optim.adam_eps": _POSITIVE,
-    "optim.exposure": EXPOSURES,
+    "optim.exposure": EXPOSURES, "optim.exposure_grid": Range(2, counts=(3, 3)),
     "densify.densification_interval": _COUNT, "densify.opacity_reset_interval": _COUNT, "densify.split_count": _COUNT,
     "densify.split_scale_divisor": _POSITIVE, "densify.min_opacity": Range(0, 1, open_high=True),
     "densify.reset_opacity": _OPEN_FRACTION,

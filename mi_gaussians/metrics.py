@@ -189,3 +189,35 @@ def apply_affine(image: np.ndarray, e: np.ndarray) -> np.ndarray:
     """``image`` (..., 3) through the 3 x 4 transform ``e``: ``image @ e[:, :3] + e[:, 3]`` (float32)."""
     e = np.asarray(e, np.float64)
     return (np.asarray(image, np.float64) @ e[:, :3] + e[:, 3]).astype(np.float32)
+
+
+def apply_bilateral(image: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """``image`` (H, W, 3) through the bilateral grid ``grid`` (L, GH, GW, 3, 4) of transforms in
+    :func:`apply_affine`'s layout: each pixel's transform trilinearly interpolated at its centre's (x, y) and its
+    BT.601 luma clamped to [0, 1], as ``optim/bilateral.py`` applies it in training (float32)."""
+    img = np.asarray(image, np.float64)
+    g = np.asarray(grid, np.float64)
+    levels, gh, gw = g.shape[:3]
+    h, w = img.shape[:2]
+
+    def split(coord, n):
+        i0 = np.minimum(np.floor(coord).astype(np.int64), n - 2)
+        return i0, coord - i0
+
+    x0, fx = split((np.arange(w) + 0.5) * ((gw - 1) / w), gw)
+    y0, fy = split((np.arange(h) + 0.5) * ((gh - 1) / h), gh)
+    z0, fz = split(np.clip(img @ np.array([0.299, 0.587, 0.114]), 0.0, 1.0) * (levels - 1), levels)
+    e = np.zeros((h, w, 3, 4))
+    for dz in (0, 1):
+        for dy in (0, 1):
+            for dx in (0, 1):
+                weight = ((fz if dz else 1 - fz) * (fy if dy else 1 - fy)[:, None]
+                          * (fx if dx else 1 - fx)[None, :])
+                e += weight[..., None, None] * g[z0 + dz, (y0 + dy)[:, None], (x0 + dx)[None, :]]
+    return (np.einsum("hwr,hwrj->hwj", img, e[..., :3]) + e[..., 3]).astype(np.float32)
+
+
+def apply_compensation(image: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``image`` (H, W, 3) through a training image's colour compensation: a 3 x 4 transform (``--exposure``) or a
+    bilateral grid of them (``--exposure bilateral``)."""
+    return apply_affine(image, t) if np.ndim(t) == 2 else apply_bilateral(image, t)

@@ -27,11 +27,13 @@ RENDERS = "renders"
 COMPARE = "compare"
 EVAL = "eval.json"
 EXPOSURE = "exposure.json"               # the training images' colour transforms (--exposure), name -> 3x4
+EXPOSURE_GRIDS = "exposure_grids.npz"    # ... their bilateral grids (--exposure bilateral): names, grids
 GAUSSIAN_SCENE = "gaussians.xml"
 REFERENCES = "references"
 POINTS = "points"                        # triangulated initial points, cached (kept by --overwrite, as references)
 #: The names a run writes at the top of its folder (how a folder of an earlier version, without a Manifest, is read)
-RUN_OUTPUTS = (CHECKPOINTS, RENDERS, COMPARE, CONFIG, METRICS, EVAL, HISTORY, CURVES, GAUSSIAN_SCENE, MODEL, EXPOSURE)
+RUN_OUTPUTS = (CHECKPOINTS, RENDERS, COMPARE, CONFIG, METRICS, EVAL, HISTORY, CURVES, GAUSSIAN_SCENE, MODEL, EXPOSURE,
+               EXPOSURE_GRIDS)
 _SAVED_MODELS = "point_cloud_*.ply"       # the models of TrainConfig.save_iterations
 
 LOCK = ".mi-gs.lock"
@@ -177,7 +179,8 @@ def run_outputs(cfg: TrainConfig, view_names, scene_file: bool) -> list[str]:
     out = [CONFIG, CHECKPOINTS, CHECKPOINT, MODEL, METRICS, HISTORY, CURVES, RENDERS, COMPARE]
     out += [saved_model(i) for i in cfg.save_iterations if i < cfg.optim.iterations]
     out += [f"{RENDERS}/{s}{ext}" for s in stems for ext in (".exr", ".png")] + [f"{COMPARE}/{s}.png" for s in stems]
-    return out + ([GAUSSIAN_SCENE] if scene_file else []) + ([EXPOSURE] if cfg.optim.exposure != "off" else [])
+    compensation = {"affine": [EXPOSURE], "bilateral": [EXPOSURE_GRIDS]}.get(cfg.optim.exposure, [])
+    return out + ([GAUSSIAN_SCENE] if scene_file else []) + compensation
 
 
 class Manifest:

@@ -160,7 +160,8 @@ def render_image(g, cam: Camera, mode: str = "RGB", sh_degree: int | None = None
                  exposure: np.ndarray | None = None) -> np.ndarray:
     """One frame of the viewer: (H, W, 3) uint8 of ``g`` seen by ``cam`` in render ``mode`` (see the module
     docstring). RGB is display-encoded: a model trained on linear radiance is sRGB-encoded here. ``exposure``: a
-    training view's colour transform (3 x 4), applied to RGB as the training applied it (before the encoding)."""
+    training view's colour transform (3 x 4) or bilateral grid (L, H, W, 3, 4), applied to RGB as the training
+    applied it (before the encoding)."""
     import drjit as dr
 
     from .imwrite import linear_to_srgb
@@ -175,9 +176,9 @@ def render_image(g, cam: Camera, mode: str = "RGB", sh_degree: int | None = None
         if mode == "RGB":
             img = np.array(out.rgb, np.float32)
             if exposure is not None:
-                from .metrics import apply_affine
+                from .metrics import apply_compensation
 
-                img = apply_affine(img, exposure)
+                img = apply_compensation(img, exposure)
             img = linear_to_srgb(np.maximum(img, 0)) if color_space == "linear" else img
         elif mode == "Alpha":
             img = np.repeat(np.array(out.alpha, np.float32)[..., None], 3, axis=2)

@@ -1,6 +1,6 @@
 """What the viewer lists beside a model: the cameras of its dataset (:class:`ViewEntry`: a camera, its reference image
-and, for a training view of a run with ``--exposure``, its colour transform), read from a run folder or a dataset, and
-a camera to start from when there are none."""
+and, for a training view of a run with ``--exposure``, its colour transform or bilateral grid), read from a run folder
+or a dataset, and a camera to start from when there are none."""
 
 from __future__ import annotations
 
@@ -16,7 +16,8 @@ from .data.camera import Camera
 @dataclass
 class ViewEntry:
     """A camera of the model's dataset, with a loader of its reference image ((H, W, 3) display-encoded floats) and,
-    for a training view of a run with ``--exposure``, a getter of its colour transform (3 x 4)."""
+    for a training view of a run with ``--exposure``, a getter of its colour transform (3 x 4, or a bilateral grid
+    (L, H, W, 3, 4))."""
 
     name: str
     camera: Camera
@@ -36,7 +37,8 @@ def default_camera(g) -> Camera:
 
 def dataset_entries(ds, exposure: Callable[[], dict] | None = None) -> list[ViewEntry]:
     """The camera list of a dataset's training and test views, each with its reference when the image exists;
-    ``exposure``: a getter of the training views' colour transforms (name -> 3 x 4) of a run with ``--exposure``."""
+    ``exposure``: a getter of the training views' colour transforms (name -> 3 x 4 or bilateral grid) of a run with
+    ``--exposure``."""
     def getter(name):
         return None if exposure is None else (lambda: exposure()[name])
 
@@ -49,7 +51,7 @@ def run_entries(record, out, warn: Callable[[str], None]) -> tuple[list[ViewEntr
     """(camera list, colour space, background) of the dataset the run in ``out`` (its ``RunRecord``) was trained
     on. A scene file's references are not rendered again: views whose reference is gone are listed without a
     picture. A dataset that cannot be loaded any more gives no cameras, and a line to ``warn``."""
-    from .run_folder import EXPOSURE
+    from .run_folder import EXPOSURE, EXPOSURE_GRIDS
     from .runs import run_dataset
 
     try:
@@ -57,7 +59,7 @@ def run_entries(record, out, warn: Callable[[str], None]) -> tuple[list[ViewEntr
     except (ValueError, OSError, RuntimeError) as e:
         warn(f"the run's dataset cannot be loaded ({e}); viewing without its cameras")
         return [], "srgb", tuple(record.train.data.background)
-    transforms = _exposures(Path(out) / EXPOSURE, warn)
+    transforms = _exposures(Path(out) / EXPOSURE, warn) or _grids(Path(out) / EXPOSURE_GRIDS, warn)
     return (dataset_entries(ds, None if transforms is None else lambda: transforms), ds.color_space,
             tuple(float(b) for b in ds.background))
 
@@ -77,3 +79,21 @@ def _exposures(path, warn) -> dict | None:
         warn(f"{path}: not readable ({e}); the views are shown without their exposure")
         return None
     return out
+
+
+def _grids(path, warn) -> dict | None:
+    """The bilateral grids of ``exposure_grids.npz`` (name -> (L, H, W, 3, 4) array), or None (absent, or
+    unreadable: warned)."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as z:
+            names, grids = [str(n) for n in z["names"]], np.asarray(z["grids"], np.float64)
+        if grids.ndim != 6 or grids.shape[0] != len(names) or grids.shape[-2:] != (3, 4):
+            raise ValueError(f"grids of shape {grids.shape} for {len(names)} names")
+        if not np.all(np.isfinite(grids)):
+            raise ValueError("non-finite values")
+    except (OSError, ValueError, KeyError) as e:
+        warn(f"{path}: not readable ({e}); the views are shown without their exposure")
+        return None
+    return dict(zip(names, grids))

@@ -218,7 +218,7 @@ def test_command_line(tmp_path):
     assert "half_image" in evaluated and evaluated["protocol"] == metrics["protocol"]
     r = run("optimize", data, "-o", out, "--resume", "--iterations", 45, "--quiet")
     assert r.returncode == 0, r.stderr
-    r = run("optimize", data, "-o", tmp_path / "x", "--exposure", "bilateral")
+    r = run("optimize", data, "-o", tmp_path / "x", "--exposure", "grid")
     assert r.returncode == 2 and "invalid choice" in r.stderr
 
 

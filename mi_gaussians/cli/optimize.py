@@ -131,7 +131,7 @@ def _training_view(args, trainer, ds, cfg):
 
     live = TrainingView(trainer)
     names = [v.name for v in ds.train]
-    exposure = None if trainer.exposure is None else (lambda: dict(zip(names, trainer.exposure.matrices())))
+    exposure = None if trainer.exposure is None else (lambda: dict(zip(names, trainer.exposure.per_image())))
     live.viewer = Viewer(live, dataset_entries(ds, exposure), viewer_config(args), raster=cfg.raster,
                          color_space=ds.color_space, background=tuple(ds.background),
                          title=f"mi-gs optimize {Path(args.output).name}")

@@ -127,10 +127,12 @@ def options() -> list[Option]:
                give=lambda cfg, w, _: dataclasses.replace(cfg, optim=cfg.optim.with_depth_weight(w))),
         Option(("--exposure",), ("optim.exposure",), {
             "nargs": "?", "const": "affine", "choices": tuple(e for e in EXPOSURES if e != "off"),
-            "help": "compensate each training image's exposure and white balance: a 3x4 colour transform per image "
-                    "applied to the render before the loss (the 2024 reference's --train_test_exp); saved in "
-                    "exposure.json, never in the model; the test views are then also scored the reference's way "
-                    "(fitted on their left half, scored on the right)"}),
+            "help": "compensate each training image's exposure and white balance: 'affine' (the default when given "
+                    "alone), a 3x4 colour transform per image applied to the render before the loss (the 2024 "
+                    "reference's --train_test_exp), saved in exposure.json; 'bilateral', a grid of them over the "
+                    "image and its brightness (gsplat's bilateral grid), saved in exposure_grids.npz; never in the "
+                    "model; the test views are then also scored the reference's way (a transform fitted on their "
+                    "left half, the right half scored)"}),
         Option(("--strategy",), ("strategy",), {
             "choices": tuple(STRATEGIES),
             "help": "densification: 'default' (the paper's clone / split / prune) or 'mcmc' (3DGS as Markov Chain "

@@ -37,9 +37,16 @@ import numpy as np
 from ..config import OptimConfig
 from ..drjit_utils import owned_array
 from .adam import export_state, import_state, masked_step, opaque_step_counts
+from .schedules import expon_lr
 
 KEY = "exposure"
 IDENTITY = np.eye(3, 4, dtype=np.float32).reshape(12)
+
+
+def transform(c: "mi.Vector3f", e: list) -> "mi.Vector3f":
+    """Colours ``c`` through the 3 x 4 transform ``e`` (12 values, row-major: ``E[r][col] = e[4 r + col]``):
+    ``c @ E[:, :3] + E[:, 3]``."""
+    return mi.Vector3f(*[c.x * e[j] + c.y * e[4 + j] + c.z * e[8 + j] + e[4 * j + 3] for j in range(3)])
 
 
 class Exposure:
@@ -65,16 +72,28 @@ class Exposure:
         """(n, 3, 4) float32, a host copy."""
         return np.array(self.tensor, dtype=np.float32).reshape(self.n, 3, 4)
 
+    def per_image(self) -> np.ndarray:
+        """What each image's colours go through: :meth:`matrices` (the interface of
+        :meth:`.bilateral.BilateralGrids.per_image`)."""
+        return self.matrices()
+
     def apply(self, rgb: "mi.TensorXf", index) -> "mi.TensorXf":
         """``rgb`` (H, W, 3) through the transform of image ``index`` (an int, or a 1-element ``mi.UInt32``, opaque
         inside a frozen step), differentiable in both."""
         if not dr.is_array_v(index):
             index = dr.opaque(mi.UInt32, int(index), 1)
         flat = self.tensor.array
-        e = [dr.gather(mi.Float, flat, index * 12 + k) for k in range(12)]      # E[r][c] = e[4 r + c]
-        c = dr.unravel(mi.Vector3f, rgb.array)
-        out = mi.Vector3f(*[c.x * e[j] + c.y * e[4 + j] + c.z * e[8 + j] + e[4 * j + 3] for j in range(3)])
-        return mi.TensorXf(dr.ravel(out), tuple(rgb.shape))
+        e = [dr.gather(mi.Float, flat, index * 12 + k) for k in range(12)]
+        return mi.TensorXf(dr.ravel(transform(dr.unravel(mi.Vector3f, rgb.array), e)), tuple(rgb.shape))
+
+    def regularization(self, index) -> None:
+        """No regularizer (the bilateral grids' interface: :meth:`.bilateral.BilateralGrids.regularization`)."""
+        return None
+
+    def learning_rate(self, step: int) -> float:
+        """The rate at the 1-based iteration ``step``: decaying over the run's schedule, as the positions'."""
+        o = self.cfg
+        return expon_lr(step, o.exposure_lr_init, o.exposure_lr_final, o.position_lr_max_steps)
 
     def set_learning_rate(self, lr) -> None:
         """A Python float, or a 1-element ``mi.Float`` (inside a frozen step)."""

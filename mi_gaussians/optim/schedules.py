@@ -39,6 +39,19 @@ def expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int, delay_s
     return delay_rate * math.exp(math.log(lr_init) * (1.0 - t) + math.log(lr_final) * t)
 
 
+def warmup_expon_lr(step: int, lr: float, warmup_steps: int, start_factor: float, final_factor: float,
+                    max_steps: int) -> float:
+    """gsplat's bilateral-grid schedule at the 1-based iteration ``step``: ``ChainedScheduler([LinearLR(
+    start_factor, total_iters=warmup_steps), ExponentialLR(gamma=final_factor ** (1 / max_steps))])`` stepped once
+    after each optimizer step, so the k-th step (``k = step - 1`` before it) uses ``lr (start_factor + (1 -
+    start_factor) min(k, warmup_steps) / warmup_steps) gamma^k``."""
+    if max_steps <= 0 or warmup_steps <= 0:
+        raise ValueError(f"max_steps and warmup_steps must be positive, got {max_steps!r}, {warmup_steps!r}")
+    k = max(int(step) - 1, 0)
+    warm = start_factor + (1.0 - start_factor) * min(k, warmup_steps) / warmup_steps
+    return lr * warm * final_factor ** (k / max_steps)
+
+
 def sh_degree_at(step: int, max_degree: int, interval: int) -> int:
     """Active SH degree at the 1-based iteration ``step``: ``min(max_degree, step // interval)``.
 

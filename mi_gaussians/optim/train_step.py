@@ -66,7 +66,7 @@ class StepInputs:
     step: "mi.UInt32"                     # the iteration (1 element; keys the strategy's per-iteration noise)
     depth_target: "mi.TensorXf | None" = None   # (H, W) inverse exact depth, 0 where no surface (depth loss)
     depth_weight: "mi.Float | None" = None      # this iteration's depth-loss weight (1 element)
-    view_index: "mi.UInt32 | None" = None       # the training view (1 element), whose exposure transform applies
+    view_index: "mi.UInt32 | None" = None       # the training view (1 element), whose colour compensation applies
     exposure_lr: "mi.Float | None" = None       # this iteration's exposure learning rate (1 element)
 
 
@@ -82,15 +82,17 @@ def composite_target(target, transparency, background, fixed_background) -> "mi.
 
 
 def training_loss(out, target, lambda_dssim, strategy: Strategy, params: GaussianAdam, depth_target=None,
-                  depth_weight=None, image=None) -> "mi.Float":
+                  depth_weight=None, exposure=None, view_index=None) -> "mi.Float":
     """The loss an iteration minimizes, the one home of its assembly for the frozen step and the traced loop: the
-    photometric (L1 + D-SSIM) loss of render ``out`` (or of ``image``, the render through the view's exposure
-    transform) against ``target``, the strategy's regularizers, and the depth loss weighted by ``depth_weight``
-    where a ``depth_target`` is given."""
-    loss = photometric_loss(out.rgb if image is None else image, target, lambda_dssim)
-    reg = strategy.regularization(params)
-    if reg is not None:
-        loss = loss + reg
+    photometric (L1 + D-SSIM) loss of render ``out`` (through training view ``view_index``'s colour compensation
+    when ``exposure`` is given: :func:`.exposure.make_compensation`) against ``target``, the strategy's and the
+    compensation's regularizers, and the depth loss weighted by ``depth_weight`` where a ``depth_target`` is
+    given."""
+    image = out.rgb if exposure is None else exposure.apply(out.rgb, view_index)
+    loss = photometric_loss(image, target, lambda_dssim)
+    for reg in (strategy.regularization(params), None if exposure is None else exposure.regularization(view_index)):
+        if reg is not None:
+            loss = loss + reg
     if depth_target is not None:
         loss = loss + depth_weight * depth_loss(out.depth, out.alpha, depth_target)
     return loss
@@ -116,8 +118,8 @@ class TrainStep:
                          cfg=raster, capacity=capacity)
             strategy.step_pre_backward(params, state, None, out, collect=update_state)
             target = composite_target(inputs.target, inputs.transparency, inputs.background, fixed)
-            image = None if exposure is None else exposure.apply(out.rgb, inputs.view_index)
-            loss = training_loss(out, target, lam, strategy, params, inputs.depth_target, inputs.depth_weight, image)
+            loss = training_loss(out, target, lam, strategy, params, inputs.depth_target, inputs.depth_weight,
+                                 exposure, inputs.view_index)
             dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
             ok = valid & out.fits & dr.isfinite(loss)
             if update_state:

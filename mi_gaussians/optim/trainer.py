@@ -41,7 +41,7 @@ from ..raster.projection import ViewParams
 from ..raster.rasterize import render
 from .. import report, run_folder
 from .adam import GaussianAdam
-from .exposure import Exposure
+from .compensation import make_compensation, save_compensation
 from .loop_state import History, ViewSampler
 from .strategies import initial_gaussians, make_strategy
 from .losses import inverse_depth_target
@@ -121,7 +121,7 @@ class Trainer:
         self.params = GaussianAdam(initial_gaussians(ds, cfg.optim.sh_degree, self.strategy, seed=cfg.seed + 3),
                                    cfg.optim, self.extent)
         self.strategy_state = self.strategy.initialize_state(self.params.n)
-        self.exposure = Exposure(len(ds.train), cfg.optim) if cfg.optim.exposure == "affine" else None
+        self.exposure = make_compensation(cfg.optim, len(ds.train))
         # the frozen training step (see train_step.py) and the state of the loop around it
         self.train_step = TrainStep(self.strategy, cfg.raster, cfg.optim.lambda_dssim, self.background,
                                     freeze=cfg.freeze)
@@ -209,11 +209,6 @@ class Trainer:
         return self.extent * expon_lr(step, o.position_lr_init, o.position_lr_final, o.position_lr_max_steps,
                                       delay_steps=o.position_lr_delay_steps, delay_mult=o.position_lr_delay_mult)
 
-    def _exposure_lr(self, step: int) -> float:
-        """The exposure transforms' learning rate at ``step``: decaying over the run's schedule, as the positions'."""
-        o = self.cfg.optim
-        return expon_lr(step, o.exposure_lr_init, o.exposure_lr_final, o.position_lr_max_steps)
-
     def _depth_weight(self, step: int) -> float:
         """The depth-loss weight at ``step``: decaying over the run's schedule (``position_lr_max_steps``, which a
         resume with more iterations keeps, as it keeps every schedule)."""
@@ -241,10 +236,10 @@ class Trainer:
         self.strategy.step_pre_backward(self.params, self.strategy_state, step, out,
                                         collect=self.strategy.updates_state_at(step))
         depth = self.depth_targets is not None
-        image = None if self.exposure is None else self.exposure.apply(out.rgb, dr.opaque(mi.UInt32, idx))
         loss = training_loss(out, self.target(idx, bg), o.lambda_dssim, self.strategy, self.params,
                              self.depth_targets[idx] if depth else None,
-                             dr.opaque(mi.Float, self._depth_weight(step)) if depth else None, image)
+                             dr.opaque(mi.Float, self._depth_weight(step)) if depth else None, self.exposure,
+                             dr.opaque(mi.UInt32, idx))
         # (a view where nothing is visible gives a loss that does not depend on the parameters)
         dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
         value = float(loss[0])
@@ -259,7 +254,7 @@ class Trainer:
         self.strategy.step_post_update(self.params, self.strategy_state, dr.opaque(mi.UInt32, step),
                                        dr.opaque(mi.Float, self._means_lr(step)))
         if self.exposure is not None:          # (every iteration, as the reference's exposure optimizer)
-            self.exposure.set_learning_rate(dr.opaque(mi.Float, self._exposure_lr(step)))
+            self.exposure.set_learning_rate(dr.opaque(mi.Float, self.exposure.learning_rate(step)))
             self.exposure.step()
         return value, int(out.n_instances)
 
@@ -300,7 +295,7 @@ class Trainer:
                             else dr.opaque(mi.Float, self._depth_weight(step)),
                             view_index=None if self.exposure is None else dr.opaque(mi.UInt32, idx),
                             exposure_lr=None if self.exposure is None
-                            else dr.opaque(mi.Float, self._exposure_lr(step)))
+                            else dr.opaque(mi.Float, self.exposure.learning_rate(step)))
         degree = sh_degree_at(step, self.params.gaussians.sh_degree, cfg.optim.sh_increase_interval)
         if self._valid is None:
             self._valid = dr.opaque(mi.Bool, True)
@@ -471,8 +466,7 @@ class Trainer:
             half, _ = evaluate_views(g, views, self.background, cfg=self.cfg.raster, color_space=self.ds.color_space,
                                      protocol="half")
             metrics["half_image"] = {"protocol": PROTOCOLS["half"], **scores_report(half, note)}
-            report.write_json(self.out / run_folder.EXPOSURE, {v.name: m.tolist() for v, m in
-                                                              zip(self.ds.train, self.exposure.matrices())})
+            save_compensation(self.exposure, self.out, [v.name for v in self.ds.train])
         depth = depth_error(g, views, cfg=self.cfg.raster)
         if depth is not None:
             metrics["depth_mae"], metrics["depth_coverage"] = depth["depth_mae"], round(depth["coverage"], 6)
