@@ -94,6 +94,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--datasets", nargs="+", default=["room_blender", "mi_room_blender", "mi_objects_blender", "fox"])
     ap.add_argument("--iterations", nargs="+", type=int, default=[3000, 7000])
+    ap.add_argument("--inits", nargs="+", choices=INITS, default=list(INITS),
+                    help="which initial point sources to train (default: all, in this order)")
     ap.add_argument("--out", default="/tmp/mi_gs_init")
     ap.add_argument("--cache", default="/tmp/mi_gs_depth/room/references",
                     help="scenes/room.xml's reference cache (default: benchmarks/depth.py's, shared)")
@@ -106,7 +108,7 @@ def main(argv=None) -> int:
             if not src.is_dir():
                 print(f"{name}: {src} not found, skipped", file=sys.stderr)
                 continue
-            for init in INITS:
+            for init in [i for i in INITS if i in args.inits]:
                 run = root / name / f"{init}_{iterations}"
                 m = train(src, run, iterations, extra + ["--init", init])
                 triangulated, seconds = triangulation(run)

@@ -71,6 +71,10 @@ class SSIMParams:
 
 REFERENCE_SSIM = SSIMParams()
 
+#: BT.601 luma weights of linear RGB (gsplat's ``rgb2gray``): the bilateral grids' guidance, in training
+#: (:mod:`mi_gaussians.optim.bilateral`) and in :func:`mi_gaussians.metrics.apply_bilateral`.
+LUMA = (0.299, 0.587, 0.114)
+
 
 # ---------------------------------------------------------------------------------------------------------- helpers
 def gaussian_window(window: int = REFERENCE_SSIM.window, sigma: float = REFERENCE_SSIM.sigma) -> list[float]:

@@ -22,7 +22,7 @@ import os
 import numpy as np
 
 from .drjit_utils import owned_tensor
-from .image_ops import REFERENCE_SSIM, SSIMParams, gaussian_window, ssim
+from .image_ops import LUMA, REFERENCE_SSIM, SSIMParams, gaussian_window, ssim
 
 # torchvision's ImageNet VGG16 weights (the file torch.hub caches for ``vgg16(weights=IMAGENET1K_V1)``)
 VGG16_WEIGHTS_FILE = "vgg16-397923af.pth"
@@ -206,7 +206,7 @@ def apply_bilateral(image: np.ndarray, grid: np.ndarray) -> np.ndarray:
 
     x0, fx = split((np.arange(w) + 0.5) * ((gw - 1) / w), gw)
     y0, fy = split((np.arange(h) + 0.5) * ((gh - 1) / h), gh)
-    z0, fz = split(np.clip(img @ np.array([0.299, 0.587, 0.114]), 0.0, 1.0) * (levels - 1), levels)
+    z0, fz = split(np.clip(img @ np.array(LUMA), 0.0, 1.0) * (levels - 1), levels)
     e = np.zeros((h, w, 3, 4))
     for dz in (0, 1):
         for dy in (0, 1):

@@ -311,8 +311,9 @@ class Viewer:
         self._reference = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="Reference", visible=False)
         self._exposure = gui.add_checkbox("Exposure of the chosen view", initial_value=False,
                                           visible=any(v.exposure is not None for v in self.views),
-                                          hint="render through the colour transform --exposure fitted to this "
-                                               "training view (the model itself has none)")
+                                          hint="render through the colour transform (--exposure) or bilateral "
+                                               "grid (--exposure bilateral) fitted to this training view (the "
+                                               "model itself has none)")
         self._curves = None
 
         @self._camera.on_update

@@ -59,7 +59,9 @@ def run_entries(record, out, warn: Callable[[str], None]) -> tuple[list[ViewEntr
     except (ValueError, OSError, RuntimeError) as e:
         warn(f"the run's dataset cannot be loaded ({e}); viewing without its cameras")
         return [], "srgb", tuple(record.train.data.background)
-    transforms = _exposures(Path(out) / EXPOSURE, warn) or _grids(Path(out) / EXPOSURE_GRIDS, warn)
+    kind = record.train.optim.exposure                  # (the file the run wrote: a leftover of another is not read)
+    transforms = (_exposures(Path(out) / EXPOSURE, warn) if kind == "affine"
+                  else _grids(Path(out) / EXPOSURE_GRIDS, warn) if kind == "bilateral" else None)
     return (dataset_entries(ds, None if transforms is None else lambda: transforms), ds.color_space,
             tuple(float(b) for b in ds.background))
 

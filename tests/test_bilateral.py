@@ -168,6 +168,18 @@ def test_a_step_keeps_the_gauge():
     assert np.abs(bg.grids() - before).max() > 1e-3
 
 
+def test_restore_refuses_another_grid_of_the_same_size():
+    """A checkpoint's grids restore into the same layout only: (2 images, 4x4x2 cells) and (2 images, 2x8x2) hold as
+    many numbers in the same tensor shape."""
+    saved = BilateralGrids(2, OptimConfig(exposure_grid=(4, 4, 2))).export()
+    same = BilateralGrids(2, OptimConfig(exposure_grid=(4, 4, 2)))
+    same.restore(saved)
+    other = BilateralGrids(2, OptimConfig(exposure_grid=(2, 8, 2)))
+    assert tuple(other.tensor.shape) == tuple(same.tensor.shape)
+    with pytest.raises(ValueError, match="saved bilateral grids of 2 images, 4x4x2 cells; the run has 2 images, 2x8x2"):
+        other.restore(saved)
+
+
 def _bilateral_cfg(cfg, **optim):
     return dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, exposure="bilateral", **optim))
 

@@ -80,7 +80,6 @@ def _exposure_cfg(cfg, **optim):
     return dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, exposure="affine", **optim))
 
 
-
 def test_a_step_moves_only_the_transform_of_the_view_it_saw():
     """Each step sees one training view, so only that image's transform has a gradient: Adam's moments and momentum
     of the others stay as they were (a sparse step), and the rest of what moves is the gauge's common shift. With a
@@ -101,6 +100,7 @@ def test_a_step_moves_only_the_transform_of_the_view_it_saw():
     assert np.abs(moved[0]).max() > 0                                  # by the gauge's shift alone, -1/3 of image 1's
     np.testing.assert_allclose(moved[1], -2 * moved[0], atol=1e-6)     # own step (which kept the mean: +2/3 of it)
     np.testing.assert_allclose(after.mean(axis=0), np.eye(3, 4).ravel(), atol=1e-6)
+
 
 @pytest.mark.parametrize("freeze", [True, False])
 def test_an_identity_transform_trains_bit_for_bit_as_without(scene, tmp_path, one_thread, freeze):  # noqa: F811

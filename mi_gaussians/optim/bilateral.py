@@ -35,12 +35,12 @@ import numpy as np
 
 from ..config import OptimConfig
 from ..drjit_utils import owned_array
+from ..image_ops import LUMA
 from .adam import export_state, import_state, masked_step, opaque_step_counts
 from .exposure import IDENTITY, transform
 from .schedules import warmup_expon_lr
 
 KEY = "grids"
-LUMA = (0.299, 0.587, 0.114)          # BT.601, gsplat's rgb2gray weights
 WARMUP_STEPS, WARMUP_START = 1000, 0.01   # gsplat's rate (optim.exposure_grid_lr) warmed up from 1 % over 1,000
 FINAL_FACTOR = 0.01                   # steps, then decaying exponentially to 1 % over the run
 EPS = 1e-15                           # its Adam's epsilon
@@ -57,7 +57,8 @@ class BilateralGrids:
         self.cfg = cfg
         self.width, self.height, self.levels = (int(s) for s in cfg.exposure_grid)
         if min(self.width, self.height, self.levels) < 2:
-            raise ValueError(f"a bilateral grid needs at least 2 cells along each axis, got {cfg.exposure_grid}")
+            raise ValueError(f"optim.exposure_grid: a bilateral grid needs at least 2 cells along each axis, "
+                             f"got {cfg.exposure_grid}")
         self._adam = mi.ad.Adam(lr=0.0, epsilon=EPS)
         cells = self.levels * self.n * self.height * self.width
         self._adam[KEY] = mi.TensorXf(owned_array(mi.Float, np.tile(IDENTITY, cells)),
@@ -142,7 +143,7 @@ class BilateralGrids:
         self._adam.set_learning_rate({KEY: lr if dr.is_array_v(lr) else float(lr)})
 
     def step(self, active=None) -> None:
-        """One sparse Adam step from the gradient of the last backward pass (masked by ``active``), then the grids
+        """One dense Adam step (every grid: see the module docstring) from the gradient of the last backward pass (masked by ``active``), then the grids
         moved so that their mean over the images and (x, y) is the identity at every level (module docstring)."""
         masked_step(self._adam, [KEY], active)
         t = self._adam[KEY]
@@ -152,12 +153,21 @@ class BilateralGrids:
 
     # ------------------------------------------------------------------ checkpoints
     def export(self) -> dict[str, np.ndarray]:
-        """The grids and their Adam state, for a checkpoint (``value``, ``grids.t/m/v``)."""
-        return {"value": np.array(self.tensor, dtype=np.float32), **export_state(self._adam, [KEY])}
+        """The grids, their layout (``layout``: n, L, H, W) and their Adam state, for a checkpoint (``value``,
+        ``grids.t/m/v``)."""
+        return {"value": np.array(self.tensor, dtype=np.float32), "layout": np.array(self._layout(), np.int64),
+                **export_state(self._adam, [KEY])}
+
+    def _layout(self) -> tuple[int, int, int, int]:
+        return self.n, self.levels, self.height, self.width
 
     def restore(self, arrays: dict) -> None:
         """What :meth:`export` wrote (KeyError / ValueError when it does not fit: another number of images or
         another grid)."""
+        layout = tuple(int(k) for k in np.asarray(arrays["layout"]).reshape(-1))
+        if layout != self._layout():
+            raise ValueError(f"saved bilateral grids of {layout[0]} images, {'x'.join(map(str, layout[:0:-1]))} "
+                             f"cells; the run has {self.n} images, {self.width}x{self.height}x{self.levels}")
         value = np.asarray(arrays["value"], np.float32)
         shape = tuple(self.tensor.shape)
         if value.shape != shape:

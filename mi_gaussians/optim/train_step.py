@@ -85,7 +85,7 @@ def training_loss(out, target, lambda_dssim, strategy: Strategy, params: Gaussia
                   depth_weight=None, exposure=None, view_index=None) -> "mi.Float":
     """The loss an iteration minimizes, the one home of its assembly for the frozen step and the traced loop: the
     photometric (L1 + D-SSIM) loss of render ``out`` (through training view ``view_index``'s colour compensation
-    when ``exposure`` is given: :func:`.exposure.make_compensation`) against ``target``, the strategy's and the
+    when ``exposure`` is given: :func:`.compensation.make_compensation`) against ``target``, the strategy's and the
     compensation's regularizers, and the depth loss weighted by ``depth_weight`` where a ``depth_target`` is
     given."""
     image = out.rgb if exposure is None else exposure.apply(out.rgb, view_index)
