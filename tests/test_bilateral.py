@@ -22,7 +22,8 @@ from mi_gaussians.optim.adam import masked_step
 from mi_gaussians.optim.bilateral import BilateralGrids
 from mi_gaussians.optim.schedules import warmup_expon_lr
 from test_train import load, scene, small_config  # noqa: F401  (scene is a fixture)
-from test_train_step import assert_same_training, one_thread  # noqa: F401  (one_thread is a fixture)
+from test_train_step import (assert_same_training, one_thread,  # noqa: F401  (one_thread is a fixture)
+                             stopped_and_resumed)
 
 SHAPE = (4, 3, 5)           # (x, y, guidance) cells: unequal, so that a swapped axis shows
 
@@ -201,16 +202,8 @@ def test_a_frozen_identity_grid_trains_bit_for_bit_as_without(scene, tmp_path, o
 
 
 def test_checkpoint_and_resume_keep_the_grids(scene, tmp_path, one_thread):  # noqa: F811
-    from mi_gaussians.optim.trainer import Trainer
-
     cfg = _bilateral_cfg(small_config(100), exposure_grid=SHAPE)
-    first = dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, iterations=60))
-    Trainer(load(scene, first), first, tmp_path / "run", progress=False).run()
-    resumed = Trainer(load(scene, cfg), cfg, tmp_path / "run", progress=False)
-    resumed.run(resume=True)
-    whole = Trainer(load(scene, cfg), cfg, tmp_path / "whole", progress=False)
-    whole.run()
-    assert resumed.resumed_from == 60
+    resumed, whole = stopped_and_resumed(scene, cfg, tmp_path)
     assert_same_training(resumed, whole)
     assert np.array_equal(resumed.exposure.grids(), whole.exposure.grids())
     assert not np.allclose(whole.exposure.grids(), np.eye(3, 4), atol=1e-4)          # (they did move)

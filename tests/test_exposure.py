@@ -18,7 +18,7 @@ from mi_gaussians.drjit_utils import owned_tensor
 from mi_gaussians.metrics import apply_affine, fit_affine
 from mi_gaussians.optim.exposure import Exposure
 from test_train import load, scene, small_config  # noqa: F401  (scene is a fixture)
-from test_train_step import assert_same_training, one_thread  # noqa: F401  (one_thread is a fixture)
+from test_train_step import assert_same_training, one_thread, stopped_and_resumed  # noqa: F401  (one_thread is a fixture)
 
 E1 = np.array([[1.2, 0.1, 0.0, 0.05], [0.0, 0.9, 0.05, -0.02], [0.02, 0.0, 1.1, 0.01]])
 
@@ -119,16 +119,8 @@ def test_an_identity_transform_trains_bit_for_bit_as_without(scene, tmp_path, on
 
 
 def test_checkpoint_and_resume_keep_the_transforms(scene, tmp_path, one_thread):  # noqa: F811
-    from mi_gaussians.optim.trainer import Trainer
-
     cfg = _exposure_cfg(small_config(100))
-    first = dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, iterations=60))
-    Trainer(load(scene, first), first, tmp_path / "run", progress=False).run()
-    resumed = Trainer(load(scene, cfg), cfg, tmp_path / "run", progress=False)
-    resumed.run(resume=True)
-    whole = Trainer(load(scene, cfg), cfg, tmp_path / "whole", progress=False)
-    whole.run()
-    assert resumed.resumed_from == 60
+    resumed, whole = stopped_and_resumed(scene, cfg, tmp_path)
     assert_same_training(resumed, whole)
     assert np.array_equal(resumed.exposure.matrices(), whole.exposure.matrices())
     assert not np.allclose(whole.exposure.matrices(), np.eye(3, 4))                 # (they did move)

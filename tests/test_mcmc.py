@@ -22,7 +22,7 @@ from mi_gaussians.optim.adam import GaussianAdam
 from mi_gaussians.optim.mcmc import MAX_OPACITY, MCMCStrategy, relocation
 from test_adam import EXTENT, loss_and_backward
 from test_train import load, scene, small_config  # noqa: F401  (scene is a fixture)
-from test_train_step import _train, assert_same_training, one_thread  # noqa: F401  (one_thread is a fixture)
+from test_train_step import _train, assert_same_training, one_thread, stopped_and_resumed  # noqa: F401  (one_thread is a fixture)
 
 
 def _paper_denominator(o_new: float, n: int) -> Decimal:
@@ -289,15 +289,8 @@ def test_cli_mcmc_run_and_misuse(scene, tmp_path):  # noqa: F811
 def test_resumed_mcmc_run_equals_an_uninterrupted_one(scene, tmp_path, one_thread):  # noqa: F811
     """A run stopped at iteration 60 (after relocations and growth) and resumed from its checkpoint ends, at 100,
     with the model of a run that was never stopped: the draws' counter and the noise's key come back."""
-    from mi_gaussians.optim.trainer import Trainer
-
     cfg = dataclasses.replace(small_config(100), strategy="mcmc", checkpoint_every=1000, eval_every=0,
                               mcmc=MCMCConfig(cap_max=6000, refine_start_iter=10, refine_every=20))
-    first = dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, iterations=60))
-    Trainer(load(scene, first), first, tmp_path / "run", progress=False).run()
-    resumed = Trainer(load(scene, cfg), cfg, tmp_path / "run", progress=False)
-    resumed.run(resume=True)
-    whole = Trainer(load(scene, cfg), cfg, tmp_path / "whole", progress=False)
-    whole.run()
+    resumed, whole = stopped_and_resumed(scene, cfg, tmp_path)
     assert resumed.strategy_state.draws == whole.strategy_state.draws == 5          # 20, 40, ..., 100
     assert_same_training(resumed, whole)

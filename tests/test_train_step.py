@@ -150,6 +150,21 @@ def assert_same_training(a, b) -> None:
     assert a.sampler.state() == b.sampler.state()
 
 
+def stopped_and_resumed(data, cfg, tmp_path, stop: int = 60):
+    """(resumed, whole): a run of ``cfg`` on ``data`` stopped at iteration ``stop`` and resumed from its checkpoint to
+    the end, and the same run never stopped; the caller compares them (:func:`assert_same_training`)."""
+    from mi_gaussians.optim.trainer import Trainer
+
+    first = dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, iterations=stop))
+    Trainer(load(data, first), first, tmp_path / "run", progress=False).run()
+    resumed = Trainer(load(data, cfg), cfg, tmp_path / "run", progress=False)
+    resumed.run(resume=True)
+    whole = Trainer(load(data, cfg), cfg, tmp_path / "whole", progress=False)
+    whole.run()
+    assert resumed.resumed_from == stop
+    return resumed, whole
+
+
 def test_replays_record_and_compile_nothing_new(scene):  # noqa: F811
     """Without densification, after a warm-up every training view (other cameras, targets, random backgrounds,
     instance counts) replays the same recording and launches no kernel that is not compiled yet."""
