@@ -21,6 +21,7 @@ from mi_gaussians.metrics import apply_bilateral, fit_affine
 from mi_gaussians.optim.adam import masked_step
 from mi_gaussians.optim.bilateral import BilateralGrids
 from mi_gaussians.optim.schedules import warmup_expon_lr
+from test_exposure import gained_dataset
 from test_train import load, scene, small_config  # noqa: F401  (scene is a fixture)
 from test_train_step import (assert_same_training, one_thread,  # noqa: F401  (one_thread is a fixture)
                              stopped_and_resumed)
@@ -218,29 +219,15 @@ def test_known_per_image_gains_are_recovered(scene, tmp_path):  # noqa: F811
     render, fitted as one affine transform, is that gain times one matrix common to all images, within 7 % (at
     5 times gsplat's learning rate: its rate is made for 30k steps, and moves the grids a half to four fifths of
     the way in the 2,400 here)."""
-    import shutil
-
-    from PIL import Image
-
     from mi_gaussians.optim.trainer import Trainer
 
-    data = tmp_path / "gained"
-    shutil.copytree(scene, data)
-    meta = json.loads((data / "transforms_train.json").read_text())
-    gains = np.linspace(0.6, 1.0, len(meta["frames"]))
-    np.random.default_rng(3).shuffle(gains)
-    for gain, frame in zip(gains, meta["frames"]):
-        p = data / (frame["file_path"].lstrip("./") + ".png")
-        a = np.asarray(Image.open(p)).astype(np.float64)
-        a[..., :3] = np.clip(a[..., :3] * gain, 0, 255)
-        Image.fromarray((a + 0.5).astype(np.uint8)).save(p)
+    data, gain_of = gained_dataset(scene, tmp_path)
     base = small_config(2400)
     cfg = _bilateral_cfg(dataclasses.replace(base, data=dataclasses.replace(base.data, background=(0.0, 0.0, 0.0))),
                          sh_degree=0, exposure_grid=(4, 4, 8), exposure_grid_lr=0.01)   # (16 pixels a cell)
     tr = Trainer(load(data, cfg), cfg, tmp_path / "run", progress=False)
     tr.run()
-    order = {f"train/r_{i}.png": g for i, g in enumerate(gains)}
-    want = np.array([order[v.name] for v in tr.ds.train])
+    want = np.array([gain_of[v.name] for v in tr.ds.train])
     grids = tr.exposure.grids()
     fitted = []
     for view, grid in zip(tr.ds.train, grids):

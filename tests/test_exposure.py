@@ -129,20 +129,15 @@ def test_checkpoint_and_resume_keep_the_transforms(scene, tmp_path, one_thread):
     np.testing.assert_allclose(np.array(list(saved.values())), whole.exposure.matrices(), atol=1e-7)
 
 
-def test_known_per_image_gains_are_recovered(scene, tmp_path):  # noqa: F811
-    """Training images scaled by known per-image gains (on a black background, none above 1: nothing clips): the
-    fitted transforms are those gains times one matrix common to all images (which the model's colours could absorb),
-    within 5 %, and that matrix is the one that makes their mean the identity (the gauge the trainer holds: the model
-    keeps the images' mean exposure). SH degree 0: view-dependent colour could absorb gains that vary with the
-    direction."""
+def gained_dataset(source: Path, tmp_path: Path) -> tuple[Path, dict[str, float]]:
+    """A copy of the Blender dataset ``source`` whose training images are scaled by known gains (0.6 to 1.0,
+    shuffled), and each training view's gain by its name."""
     import shutil
 
     from PIL import Image
 
-    from mi_gaussians.optim.trainer import Trainer
-
     data = tmp_path / "gained"
-    shutil.copytree(scene, data)
+    shutil.copytree(source, data)
     meta = json.loads((data / "transforms_train.json").read_text())
     gains = np.linspace(0.6, 1.0, len(meta["frames"]))
     np.random.default_rng(3).shuffle(gains)
@@ -151,14 +146,25 @@ def test_known_per_image_gains_are_recovered(scene, tmp_path):  # noqa: F811
         a = np.asarray(Image.open(p)).astype(np.float64)
         a[..., :3] = np.clip(a[..., :3] * gain, 0, 255)             # (straight colour, alpha kept)
         Image.fromarray((a + 0.5).astype(np.uint8)).save(p)
+    return data, {f"train/r_{i}.png": float(g) for i, g in enumerate(gains)}
+
+
+def test_known_per_image_gains_are_recovered(scene, tmp_path):  # noqa: F811
+    """Training images scaled by known per-image gains (on a black background, none above 1: nothing clips): the
+    fitted transforms are those gains times one matrix common to all images (which the model's colours could absorb),
+    within 5 %, and that matrix is the one that makes their mean the identity (the gauge the trainer holds: the model
+    keeps the images' mean exposure). SH degree 0: view-dependent colour could absorb gains that vary with the
+    direction."""
+    from mi_gaussians.optim.trainer import Trainer
+
+    data, gain_of = gained_dataset(scene, tmp_path)
     base = small_config(2400)
     cfg = _exposure_cfg(dataclasses.replace(base, data=dataclasses.replace(base.data, background=(0.0, 0.0, 0.0))),
                         sh_degree=0)
     tr = Trainer(load(data, cfg), cfg, tmp_path / "run", progress=False)
     tr.run()
-    order = {f"train/r_{i}.png": g for i, g in enumerate(gains)}
     got = tr.exposure.matrices()
-    want = np.array([order[v.name] for v in tr.ds.train])
+    want = np.array([gain_of[v.name] for v in tr.ds.train])
     # E_i = g_i C for one matrix C common to every image (what the model's colours absorb): the per-image part is
     # the known gain
     per_gain = got[:, :, :3] / want[:, None, None]
@@ -168,7 +174,7 @@ def test_known_per_image_gains_are_recovered(scene, tmp_path):  # noqa: F811
     assert np.all(spread < 0.05), spread
     assert np.abs(got[:, :, 3]).max() < 0.05                         # (black stays black: no offsets)
     np.testing.assert_allclose(got.mean(axis=0), np.eye(3, 4), atol=1e-5)
-    np.testing.assert_allclose(common, np.eye(3) / gains.mean(), atol=0.05 / gains.mean())
+    np.testing.assert_allclose(common, np.eye(3) / want.mean(), atol=0.05 / want.mean())
 
 
 def test_half_image_protocol_scores_what_a_transform_explains(scene):  # noqa: F811
