@@ -143,8 +143,9 @@ class BilateralGrids:
         self._adam.set_learning_rate({KEY: lr if dr.is_array_v(lr) else float(lr)})
 
     def step(self, active=None) -> None:
-        """One dense Adam step (every grid: see the module docstring) from the gradient of the last backward pass (masked by ``active``), then the grids
-        moved so that their mean over the images and (x, y) is the identity at every level (module docstring)."""
+        """One dense Adam step (every grid: see the module docstring) from the gradient of the last backward pass
+        (masked by ``active``), then the grids moved so that their mean over the images and (x, y) is the identity
+        at every level (module docstring)."""
         masked_step(self._adam, [KEY], active)
         t = self._adam[KEY]
         mean = dr.mean(t, axis=1)                                             # (L, 12)
