@@ -134,7 +134,8 @@ def test_sigterm_at_random_moments_checkpoints_and_resumes(tmp_path):
     run stops with status 143 and one line (during training: the iteration, saved in a checkpoint, and the --resume
     command), and the next start continues from exactly there; once, a second SIGTERM right after the first ends it
     at once. A signal that lands while the interpreter is still importing (before mi-gs can handle it) ends the
-    process as the default action does, with nothing written yet. The final model is within 0.5 dB of an
+    process as the default action does, with nothing written yet (during pycolmap's import, after glog's stack
+    trace). The final model is within 0.5 dB of an
     uninterrupted run's, and no temporary file survives."""
     data = make_blender_dataset(tmp_path / "scene", n_train=12, n_test=3, size=48)
     out = tmp_path / "termed"
@@ -170,7 +171,7 @@ def test_sigterm_at_random_moments_checkpoints_and_resumes(tmp_path):
         proc.wait(timeout=300)
         err = (tmp_path / "stderr.txt").read_text(errors="replace").strip()
         signals += 1
-        if proc.returncode == -signal.SIGTERM and not err:          # (still importing: the default action)
+        if proc.returncode == -signal.SIGTERM and (not err or _in_pycolmaps_import(err)):   # (still importing)
             importing += 1
             continue
         assert proc.returncode == 143, (proc.returncode, err[-2000:])
@@ -193,6 +194,15 @@ def test_sigterm_at_random_moments_checkpoints_and_resumes(tmp_path):
     psnr = _finished_like_an_uninterrupted_run(data, out, tmp_path / "straight", TERM_ARGS, TERM_ITERATIONS)
     print(f"{signals} SIGTERMs ({importing} while importing, {before_training} before training); stopped at "
           f"{stopped_at}; PSNR {psnr}")
+
+
+def _in_pycolmaps_import(err: str) -> bool:
+    """Whether ``err`` is all that glog's handler prints when a SIGTERM lands while pycolmap is being imported (it puts
+    that handler on SIGTERM as its import begins, before mi-gs can put its own back): a stack trace inside
+    pycolmap, and the process ended as the default action ends it, before anything was written."""
+    lines = err.splitlines()
+    return (lines[0].startswith("*** Aborted at") and any(line.startswith("*** SIGTERM") for line in lines)
+            and "pycolmap" in err and not any(line.startswith("mi-gs") for line in lines))
 
 
 def test_sigterm_after_pycolmap_was_imported_checkpoints(tmp_path):
