@@ -4,7 +4,7 @@
     python benchmarks/train_speed.py                                  # synthetic 200x200/50k and 800x800/300k
     python benchmarks/train_speed.py --cases 200:50000 --iterations 40
     python benchmarks/train_speed.py --cases mi_objects_colmap --iterations 100 --rounds 5   # a real run's start
-    python benchmarks/train_speed.py --variant cuda_ad_rgb
+    python benchmarks/train_speed.py --variant cuda_ad_rgb --busy 1000 --profile
 
 Per case and loop it prints:
 - iterations/s: wall clock over ``--rounds`` passes of ``--iterations`` iterations (after a warm-up that compiles
@@ -21,7 +21,12 @@ Per case and loop it prints:
   instance count and the loss; frozen: one read of the queued iterations' losses and flags every
   ``trainer.SYNC_EVERY`` iterations and at evaluations, checkpoints and densification steps; the reads inside a
   densification step are not counted);
-- the ratio of iterations/s, frozen over traced.
+- the ratio of iterations/s, frozen over traced;
+- with ``--busy K`` on a CUDA variant: each loop runs K more iterations while NVML's GPU utilization (what
+  ``nvidia-smi dmon`` prints as ``sm`` %: the share of time a kernel was running) is polled every 20 ms, and the mean
+  of the samples taken during the run (after its first 0.3 s) is printed as "GPU busy";
+- with ``--profile``: where the frozen step's device time goes (``kernel_profile.py``: launches and ms per iteration
+  by kind, the longest compiled kernels).
 
 Synthetic cases ``RES:N`` train N Gaussians (``benchmarks/render.py``'s scene, same seed, initialized from noisy
 positions) against 8 renders of that scene at RES x RES, without densification (a fixed model size). A dataset case
@@ -105,7 +110,38 @@ def case_setup(case: str):
     return ds, cfg, f"{case} ({what})"
 
 
-def measure(ds, cfg, warmup: int, iterations: int, rounds: int) -> dict:
+class GpuBusy:
+    """NVML's GPU utilization polled every 20 ms by a thread between ``start()`` and ``stop()`` (pynvml, from the
+    nvidia-ml-py package that PyTorch machines carry); ``stop()`` returns the mean after ``skip`` seconds."""
+
+    def __init__(self):
+        import pynvml
+
+        pynvml.nvmlInit()
+        self._nvml = pynvml
+        self._handle = pynvml.nvmlDeviceGetHandleByIndex(0)
+
+    def start(self):
+        import threading
+
+        self._samples, self._t0, self._stop = [], time.perf_counter(), threading.Event()
+
+        def poll():
+            while not self._stop.wait(0.02):
+                u = self._nvml.nvmlDeviceGetUtilizationRates(self._handle).gpu
+                self._samples.append((time.perf_counter() - self._t0, u))
+
+        self._thread = threading.Thread(target=poll, daemon=True)
+        self._thread.start()
+
+    def stop(self, skip: float = 0.3) -> float:
+        self._stop.set()
+        self._thread.join()
+        kept = [u for t, u in self._samples if t >= skip] or [u for _, u in self._samples]
+        return statistics.fmean(kept) if kept else float("nan")
+
+
+def measure(ds, cfg, warmup: int, iterations: int, rounds: int, busy: int = 0, profile: bool = False) -> dict:
     """Both loops on the same dataset and schedule, interleaved: ``rounds`` timed passes of ``iterations`` each,
     frozen and traced taking turns (a VM's speed drifts over minutes: timing one loop after the other would credit
     the drift to the second), then a kernel-history pass and a blocking pass of each. Returns {freeze: row}."""
@@ -113,7 +149,8 @@ def measure(ds, cfg, warmup: int, iterations: int, rounds: int) -> dict:
 
     from mi_gaussians.optim.trainer import Trainer
 
-    total = warmup + (rounds + 2) * iterations + 2
+    total = warmup + (rounds + 2) * iterations + 2 + busy
+    meter = GpuBusy() if busy else None
     with tempfile.TemporaryDirectory() as tmp:
         trainers = {freeze: Trainer(ds, dataclasses.replace(cfg, freeze=freeze, optim=dataclasses.replace(
             cfg.optim, iterations=total)), Path(tmp) / str(freeze), progress=False) for freeze in (True, False)}
@@ -150,6 +187,16 @@ def measure(ds, cfg, warmup: int, iterations: int, rounds: int) -> dict:
                         wall_ms = 1e3 * (time.perf_counter() - t0)
                         gaps.append(wall_ms - sum(k.get("execution_time", 0.0) for k in dr.kernel_history()))
                     run(tr, 0)
+            if profile and freeze:
+                from kernel_profile import history_table
+
+                row["profile"] = history_table(history, per=iterations)
+            if meter is not None:
+                meter.start()
+                t0 = time.perf_counter()
+                run(tr, busy)
+                row["busy_it_s"] = busy / (time.perf_counter() - t0)
+                row["busy"] = meter.stop()
             measured = rounds * iterations
             row.update(it_s=measured / row["seconds"], ms=1e3 * row["seconds"] / measured,
                        host_ms=max(0.0, statistics.median(gaps)), host_mean_ms=max(0.0, statistics.fmean(gaps)),
@@ -167,7 +214,12 @@ def main(argv=None) -> int:
     ap.add_argument("--iterations", type=int, default=30, help="iterations per pass")
     ap.add_argument("--rounds", type=int, default=3, help="timed passes per loop, the loops taking turns")
     ap.add_argument("--warmup", type=int, default=10)
+    ap.add_argument("--busy", type=int, default=0, metavar="K",
+                    help="CUDA: K more iterations per loop with NVML's GPU utilization polled (needs pynvml)")
+    ap.add_argument("--profile", action="store_true", help="where the frozen step's device time goes")
     args = ap.parse_args(argv)
+    if args.busy and not args.variant.startswith("cuda"):
+        raise SystemExit("train_speed.py: --busy reads the GPU's utilization: it needs a cuda_* variant")
 
     import mitsuba as mi
 
@@ -179,22 +231,27 @@ def main(argv=None) -> int:
     print(f"variant {args.variant}, {dr.thread_count()} threads; {args.rounds} passes of {args.iterations} "
           f"iterations per loop, taking turns, after {args.warmup} of warm-up")
     head = ("| case | loop | it/s | ms/it | host ms/it | host mean | kernel ms/it | kernels/it | syncs/it | Gaussians "
-            "| recordings | ratio |")
+            "| recordings | ratio | GPU busy (it/s) |")
     print(head)
     print("|" + "---|" * (head.count("|") - 1))
+    profiles = []
     for case in args.cases:
         setup = case_setup(case)
         if setup is None:
             print(f"| {case} | skipped: dataset not in ../shared/data |")
             continue
         ds, cfg, label = setup
-        rows = measure(ds, cfg, args.warmup, args.iterations, args.rounds)
+        rows = measure(ds, cfg, args.warmup, args.iterations, args.rounds, args.busy, args.profile)
         for freeze in (True, False):
             r = rows[freeze]
             ratio = f"{rows[True]['it_s'] / rows[False]['it_s']:.2f}x" if freeze else ""
-            print(f"| {label} | {'frozen' if freeze else 'traced'} | {r['it_s']:.1f} | {r['ms']:.1f} | "
-                  f"{r['host_ms']:.2f} | {r['host_mean_ms']:.2f} | {r['kernel_ms']:.1f} | {r['kernels']:.0f} | {r['syncs']:.2f} | "
-                  f"{r['gaussians']:,} | {r['recordings']} | {ratio} |", flush=True)
+            busy = f"{r['busy']:.0f} % ({r['busy_it_s']:.0f})" if "busy" in r else "-"
+            print(f"| {label} | {'frozen' if freeze else 'traced'} | {r['it_s']:.1f} | {r['ms']:.2f} | "
+                  f"{r['host_ms']:.2f} | {r['host_mean_ms']:.2f} | {r['kernel_ms']:.2f} | {r['kernels']:.0f} "
+                  f"| {r['syncs']:.2f} | {r['gaussians']:,} | {r['recordings']} | {ratio} | {busy} |", flush=True)
+        if "profile" in rows[True]:
+            profiles.append(f"\n{label}, frozen step, per iteration:\n{rows[True]['profile']}")
+    print("\n".join(profiles))
     return 0
 
 
