@@ -6,6 +6,10 @@ No gradients flow here. The order is built without a 64-bit key sort:
    by a max-scan over the instance starts);
 3. one stable bucket pass by tile id (``dr.detail.block_mkperm``), which keeps the depth order inside each tile.
 
+On CUDA the sorts go through :func:`stable_bucket_perm` and :func:`stable_argsort` (see there): 8-bit digit passes,
+so that the tile pass stays stable for any number of tiles, and padded inside a frozen training step, where Dr.Jit
+1.5.0 would otherwise crash replaying them.
+
 The instance list needs a length. By default it is the exact total, read back to the host (one synchronization).
 With ``capacity`` (a frozen training step, which cannot read anything back) the list has that fixed length: instances
 past the total go to a sentinel bucket behind the last tile and are never blended, and ``Bins.fits`` (a device
@@ -44,6 +48,81 @@ def _next_pow2(n: int) -> int:
     return p
 
 
+#: Buckets per pass on CUDA: Dr.Jit's CUDA ``block_mkperm`` is stable (its "tiny" variant, per-warp histograms in
+#: shared memory) only up to a few hundred buckets; above, its shared- and global-memory atomics variants may reorder
+#: elements of one bucket, which would reorder the Gaussians of a tile. (Dr.Jit's own argsort uses 8-bit digits on
+#: CUDA for the same reason.)
+CUDA_RADIX_BUCKETS = 256
+
+
+def _is_cuda(values) -> bool:
+    return dr.backend_v(values) == dr.JitBackend.CUDA
+
+
+def _needs_padding(values) -> bool:
+    """Whether a ``block_mkperm`` of these values is being recorded into a frozen function on CUDA (see
+    :func:`_mkperm`)."""
+    return _is_cuda(values) and bool(dr.flag(dr.JitFlag.FreezingScope))
+
+
+def _mkperm(values: "mi.UInt32", bucket_count: int, pad: bool) -> "mi.UInt32":
+    """Stable ``block_mkperm`` of the whole array. ``pad``: run it over the array followed by a second block of as
+    many zeros and drop the second block's entries. This sidesteps a crash of Dr.Jit 1.5.0's frozen functions on
+    CUDA: a replayed ``block_mkperm`` is always handed a (device) bucket-offset buffer, and when the array is a single
+    block CUDA's implementation reads that buffer on the host (segmentation fault in ``Recording::replay``); with two
+    blocks it does not. The second block is as long as the first because ``block_mkperm`` of a partial last block
+    crashes on the LLVM backend (seen above ~16k elements), and is not known to be safe on CUDA."""
+    n = dr.width(values)
+    if not pad:
+        return dr.detail.block_mkperm(values, n, bucket_count)
+    idx = dr.arange(mi.UInt32, 2 * n)
+    padded = dr.gather(mi.UInt32, values, idx, active=idx < n)
+    perm = dr.detail.block_mkperm(padded, n, bucket_count)
+    return dr.gather(mi.UInt32, perm, dr.arange(mi.UInt32, n))
+
+
+def stable_bucket_perm(values: "mi.UInt32", bucket_count: int, digits: bool | None = None,
+                       pad: bool | None = None) -> "mi.UInt32":
+    """Stable permutation that groups ``values`` (in ``[0, bucket_count)``) by bucket: gathering ``values`` through
+    it gives them in non-decreasing order, equal values in index order.
+
+    LLVM: one ``dr.detail.block_mkperm`` pass (a counting sort, stable for any bucket count). CUDA: passes over
+    8-bit digits, least significant first, of :data:`CUDA_RADIX_BUCKETS` buckets each (``digits``), padded inside a
+    frozen function (``pad``, see :func:`_mkperm`). Both default to what the backend needs; the tests set them to run
+    the CUDA path on the LLVM backend."""
+    n = dr.width(values)
+    digits = _is_cuda(values) if digits is None else digits
+    pad = _needs_padding(values) if pad is None else pad
+    if n <= 1:
+        return dr.arange(mi.UInt32, n)
+    if not digits or bucket_count <= CUDA_RADIX_BUCKETS:
+        return _mkperm(values, bucket_count, pad)
+    bits = (int(bucket_count) - 1).bit_length()
+    step = CUDA_RADIX_BUCKETS.bit_length() - 1
+    index, keys = dr.arange(mi.UInt32, n), mi.UInt32(values)
+    for shift in range(0, bits, step):
+        digit = (keys >> shift) & (CUDA_RADIX_BUCKETS - 1)
+        dr.eval(digit)
+        perm = _mkperm(digit, min(CUDA_RADIX_BUCKETS, 1 << (bits - shift)), pad)
+        if shift + step < bits:
+            keys = dr.gather(mi.UInt32, keys, perm)
+        index = dr.gather(mi.UInt32, index, perm)
+        dr.eval(keys, index)
+    return index
+
+
+def stable_argsort(keys: "mi.Float", pad: bool | None = None) -> "mi.UInt32":
+    """``dr.argsort(keys)`` (ascending, stable) of Float32 keys. Inside a frozen function on CUDA (``pad``), the same
+    radix sort as Dr.Jit's (the floats' order-preserving 32-bit integers, 8-bit digits, least significant first)
+    through :func:`stable_bucket_perm`, whose passes replay there; elsewhere ``dr.argsort`` itself."""
+    pad = _needs_padding(keys) if pad is None else pad
+    if not pad or dr.width(keys) <= 1:
+        return dr.argsort(keys)
+    u = dr.reinterpret_array(mi.UInt32, mi.Float32(keys))
+    ordinal = u ^ ((mi.UInt32(0) - (u >> 31)) | mi.UInt32(0x80000000))   # as Dr.Jit's _to_ordinal_32
+    return stable_bucket_perm(ordinal, 1 << 32, digits=True, pad=True)
+
+
 def bin_gaussians(depth: "mi.Float", rect: tuple, tile_count: "mi.UInt32", tiles_x: int, tiles_y: int,
                   capacity: int | None = None) -> Bins:
     """Bin Gaussians (detached inputs) into ``tiles_x * tiles_y`` tiles; ``capacity``: see the module docstring."""
@@ -66,7 +145,7 @@ def bin_gaussians(depth: "mi.Float", rect: tuple, tile_count: "mi.UInt32", tiles
         fits = total <= size
 
     # 1. depth order (culled Gaussians have no instances, so their position in the order is irrelevant)
-    order = dr.argsort(depth)
+    order = stable_argsort(depth)
     counts = dr.gather(mi.UInt32, tile_count, order)
     offsets = dr.prefix_sum(counts)                  # exclusive
 
@@ -95,7 +174,7 @@ def bin_gaussians(depth: "mi.Float", rect: tuple, tile_count: "mi.UInt32", tiles
         buckets = n_tiles + 1
 
     # 3. stable bucket sort by tile id keeps the depth order within each tile
-    perm = dr.detail.block_mkperm(tile, size, _next_pow2(buckets))
+    perm = stable_bucket_perm(tile, _next_pow2(buckets))
     gaussian = dr.gather(mi.UInt32, gidx, perm)
 
     hist = dr.zeros(mi.UInt32, n_tiles + 1)
