@@ -18,9 +18,19 @@ from test_adam import EXTENT, loss_and_backward, make_gaussians
 from test_train import load, scene, small_config  # noqa: F401  (scene is a fixture)
 
 
+#: Why runs are not compared bit for bit on CUDA (the ``one_thread`` fixture skips there).
+CUDA_ATOMICS = ("CUDA's float atomics (the backward pass's scatter-adds) sum in an order that changes from run to run: "
+                "two runs differ by an ulp from their second iteration (seen on an H100: loss 0.4279884696 against "
+                "0.4279884994 at iteration 3, frozen and traced loops alike); bit-for-bit comparisons hold on LLVM "
+                "with one thread, and test_frozen_training_tracks_traced_training checks CUDA within float noise")
+
+
 @pytest.fixture
 def one_thread():
-    """Dr.Jit on one thread: the order of atomic additions, hence every bit of a run, is then reproducible."""
+    """Dr.Jit on one thread: the order of atomic additions, hence every bit of a run, is then reproducible. CUDA has
+    no such switch: tests that need it are skipped there (:data:`CUDA_ATOMICS`)."""
+    if dr.backend_v(mi.Float) == dr.JitBackend.CUDA:
+        pytest.skip(CUDA_ATOMICS)
     before = dr.thread_count()
     dr.set_thread_count(1)
     yield
@@ -117,6 +127,38 @@ def test_frozen_training_equals_traced_training(scene, one_thread, capacity):  #
     assert (frozen.overflows > 0) == (capacity is not None)
     assert frozen.step == traced.step == steps
     assert frozen.history.iteration == list(range(1, steps + 1))
+    assert_same_training(frozen, traced)
+
+
+def test_frozen_training_tracks_traced_training(scene):  # noqa: F811
+    """Frozen and traced loops over 60 iterations before any densification, on every thread the backend has: the same
+    losses and model within float noise. The bit-for-bit tests above need ordered float sums (LLVM on one thread);
+    this one holds wherever atomics reorder them (CUDA, several LLVM threads)."""
+    cfg = small_config(300)
+    frozen = _train(scene, cfg, 60)
+    traced = _train(scene, dataclasses.replace(cfg, freeze=False), 60)
+    assert frozen.train_step.recordings >= 1 and frozen.params.n == traced.params.n
+    np.testing.assert_allclose(frozen.history.loss, traced.history.loss, rtol=1e-4)
+    # parameters that get almost no gradient can move differently (Adam divides the noise by its own size): compare
+    # what the models draw
+    from mi_gaussians.raster.rasterize import render
+
+    for v in frozen.ds.train[:3]:
+        a, b = (np.array(render(t.gaussians, v.camera).rgb) for t in (frozen, traced))
+        assert np.abs(a - b).max() < 1e-3 and np.abs(a - b).mean() < 1e-5
+
+
+def test_frozen_training_with_the_cuda_sorts_equals_traced_training(scene, one_thread, monkeypatch):  # noqa: F811
+    """The binning's CUDA sorts (8-bit digit passes, padded while a frozen function records them: Dr.Jit 1.5.0 crashes
+    replaying an unpadded one on CUDA) run on this backend: the frozen loop, which records and replays them, ends with
+    the traced loop's model, bit for bit."""
+    from mi_gaussians.raster import binning
+
+    monkeypatch.setattr(binning, "_is_cuda", lambda values: True)
+    cfg = small_config(300)
+    frozen = _train(scene, cfg, 120, 512)
+    traced = _train(scene, dataclasses.replace(cfg, freeze=False), 120)
+    assert frozen.train_step.recordings >= 1 and frozen.overflows > 0
     assert_same_training(frozen, traced)
 
 
