@@ -35,7 +35,8 @@ DATASETS = {
 }
 
 
-def run_one(name: str, milestones: list[int], out_root: Path, variant: str, schedule: int | None = None) -> list[dict]:
+def run_one(name: str, milestones: list[int], out_root: Path, variant: str, schedule: int | None = None,
+            freeze: bool = True) -> list[dict]:
     import mitsuba as mi
 
     mi.set_variant(variant)
@@ -55,7 +56,7 @@ def run_one(name: str, milestones: list[int], out_root: Path, variant: str, sche
     base = TrainConfig(data=DataConfig(resolution=res, background=bg), checkpoint_every=1000, eval_every=1000,
                        save_iterations=tuple(milestones)).with_iterations(schedule)
     cfg = dataclasses.replace(base, optim=dataclasses.replace(base.optim, iterations=iters),
-                              save_iterations=tuple(milestones))
+                              save_iterations=tuple(milestones), freeze=freeze)
     ds = mig.load_dataset(path, resolution=res, background=bg)
     out = out_root / (name if schedule == iters else f"{name}_of_{schedule}")
     tr = Trainer(ds, cfg, out, progress=True)
@@ -96,10 +97,13 @@ def main(argv=None) -> int:
     ap.add_argument("--schedule", type=int, default=None,
                     help="use the learning-rate and densification schedule of this many iterations "
                          "(default: the last milestone), e.g. 30000 to compare with iteration 2000 of a 30k run")
+    ap.add_argument("--loop", choices=("frozen", "traced"), default="frozen",
+                    help="the training step: frozen (the default) or traced (--set freeze=false)")
     args = ap.parse_args(argv)
     rows = []
     for name in args.datasets:
-        rows += run_one(name, sorted(args.milestones), Path(args.out), args.variant, args.schedule)
+        rows += run_one(name, sorted(args.milestones), Path(args.out), args.variant, args.schedule,
+                        args.loop == "frozen")
     print("\n| dataset | iterations | test PSNR | test SSIM | Gaussians | minutes | s / it (at milestone) |")
     print("|---|---:|---:|---:|---:|---:|---:|")
     for r in rows:

@@ -141,7 +141,8 @@ class GpuBusy:
         return statistics.fmean(kept) if kept else float("nan")
 
 
-def measure(ds, cfg, warmup: int, iterations: int, rounds: int, busy: int = 0, profile: bool = False) -> dict:
+def measure(ds, cfg, warmup: int, iterations: int, rounds: int, busy: int = 0, profile: bool = False,
+            loops: tuple = (True, False)) -> dict:
     """Both loops on the same dataset and schedule, interleaved: ``rounds`` timed passes of ``iterations`` each,
     frozen and traced taking turns (a VM's speed drifts over minutes: timing one loop after the other would credit
     the drift to the second), then a kernel-history pass and a blocking pass of each. Returns {freeze: row}."""
@@ -153,7 +154,7 @@ def measure(ds, cfg, warmup: int, iterations: int, rounds: int, busy: int = 0, p
     meter = GpuBusy() if busy else None
     with tempfile.TemporaryDirectory() as tmp:
         trainers = {freeze: Trainer(ds, dataclasses.replace(cfg, freeze=freeze, optim=dataclasses.replace(
-            cfg.optim, iterations=total)), Path(tmp) / str(freeze), progress=False) for freeze in (True, False)}
+            cfg.optim, iterations=total)), Path(tmp) / str(freeze), progress=False) for freeze in loops}
 
         def run(tr, k):
             for _ in range(k):
@@ -217,6 +218,8 @@ def main(argv=None) -> int:
     ap.add_argument("--busy", type=int, default=0, metavar="K",
                     help="CUDA: K more iterations per loop with NVML's GPU utilization polled (needs pynvml)")
     ap.add_argument("--profile", action="store_true", help="where the frozen step's device time goes")
+    ap.add_argument("--loops", nargs="+", default=["frozen", "traced"], choices=("frozen", "traced"),
+                    help="which loops to run (default both, taking turns)")
     args = ap.parse_args(argv)
     if args.busy and not args.variant.startswith("cuda"):
         raise SystemExit("train_speed.py: --busy reads the GPU's utilization: it needs a cuda_* variant")
@@ -241,15 +244,16 @@ def main(argv=None) -> int:
             print(f"| {case} | skipped: dataset not in ../shared/data |")
             continue
         ds, cfg, label = setup
-        rows = measure(ds, cfg, args.warmup, args.iterations, args.rounds, args.busy, args.profile)
-        for freeze in (True, False):
+        loops = tuple(loop == "frozen" for loop in args.loops)
+        rows = measure(ds, cfg, args.warmup, args.iterations, args.rounds, args.busy, args.profile, loops)
+        for freeze in loops:
             r = rows[freeze]
-            ratio = f"{rows[True]['it_s'] / rows[False]['it_s']:.2f}x" if freeze else ""
+            ratio = f"{rows[True]['it_s'] / rows[False]['it_s']:.2f}x" if freeze and len(rows) == 2 else ""
             busy = f"{r['busy']:.0f} % ({r['busy_it_s']:.0f})" if "busy" in r else "-"
             print(f"| {label} | {'frozen' if freeze else 'traced'} | {r['it_s']:.1f} | {r['ms']:.2f} | "
                   f"{r['host_ms']:.2f} | {r['host_mean_ms']:.2f} | {r['kernel_ms']:.2f} | {r['kernels']:.0f} "
                   f"| {r['syncs']:.2f} | {r['gaussians']:,} | {r['recordings']} | {ratio} | {busy} |", flush=True)
-        if "profile" in rows[True]:
+        if "profile" in rows.get(True, {}):
             profiles.append(f"\n{label}, frozen step, per iteration:\n{rows[True]['profile']}")
     print("\n".join(profiles))
     return 0
