@@ -58,3 +58,4 @@ def test_the_sorts_replay_in_a_frozen_function():
         order, perm = both(mi.Float(keys), mi.UInt32(tiles))
         np.testing.assert_array_equal(np.array(order), np.lexsort((np.arange(3000), np.signbit(keys) == 0, keys)))
         np.testing.assert_array_equal(np.array(perm), np.argsort(tiles, kind="stable"))
+    assert both.n_recordings == 1        # one recording, three replays

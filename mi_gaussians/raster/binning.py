@@ -71,7 +71,10 @@ def _mkperm(values: "mi.UInt32", bucket_count: int, pad: bool) -> "mi.UInt32":
     CUDA: a replayed ``block_mkperm`` is always handed a (device) bucket-offset buffer, and when the array is a single
     block CUDA's implementation reads that buffer on the host (segmentation fault in ``Recording::replay``); with two
     blocks it does not. The second block is as long as the first because ``block_mkperm`` of a partial last block
-    crashes on the LLVM backend (seen above ~16k elements), and is not known to be safe on CUDA."""
+    crashes on the LLVM backend (seen above ~16k elements), and is not known to be safe on CUDA.
+
+    The array's width enters the recorded operations as a constant: a frozen function that calls this must be
+    recorded again for another width (the training step is keyed by the model's size and the instance capacity)."""
     n = dr.width(values)
     if not pad:
         return dr.detail.block_mkperm(values, n, bucket_count)
@@ -96,7 +99,7 @@ def stable_bucket_perm(values: "mi.UInt32", bucket_count: int, digits: bool | No
     if n <= 1:
         return dr.arange(mi.UInt32, n)
     if not digits or bucket_count <= CUDA_RADIX_BUCKETS:
-        return _mkperm(values, bucket_count, pad)
+        return _mkperm(values, _next_pow2(bucket_count), pad)       # (block_mkperm wants a power of two)
     bits = (int(bucket_count) - 1).bit_length()
     step = CUDA_RADIX_BUCKETS.bit_length() - 1
     index, keys = dr.arange(mi.UInt32, n), mi.UInt32(values)
@@ -118,7 +121,9 @@ def stable_argsort(keys: "mi.Float", pad: bool | None = None) -> "mi.UInt32":
     pad = _needs_padding(keys) if pad is None else pad
     if not pad or dr.width(keys) <= 1:
         return dr.argsort(keys)
-    u = dr.reinterpret_array(mi.UInt32, mi.Float32(keys))
+    if dr.type_v(keys) != dr.VarType.Float32:
+        raise TypeError(f"stable_argsort: Float32 keys expected, got {dr.type_v(keys)} (the radix passes are 32-bit)")
+    u = dr.reinterpret_array(mi.UInt32, keys)
     ordinal = u ^ ((mi.UInt32(0) - (u >> 31)) | mi.UInt32(0x80000000))   # as Dr.Jit's _to_ordinal_32
     return stable_bucket_perm(ordinal, 1 << 32, digits=True, pad=True)
 
