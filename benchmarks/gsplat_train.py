@@ -12,8 +12,9 @@ SfM points, scales from the mean squared distance to the 3 nearest neighbours, r
 ``DefaultStrategy`` with its defaults (refine from 500 to 15k every 100 steps, opacity reset every 3000); one image per
 step, shuffled each epoch; ``packed=False``; near plane 0.01. Differences, so that both fit the same data: the dataset
 is loaded by our loader (same images, cameras, train/test split and SfM points) without gsplat's world normalization
-(every length it uses is relative to the scene scale, ours ``Dataset.extent``, its ``scene_scale * 1.1``), and it
-renders over the dataset's background (white for mi_objects/colmap, as our run) where simple_trainer has none.
+(the lengths it uses are relative to the scene scale, ours ``Dataset.extent``, its ``scene_scale * 1.1``, except the
+near plane, 0.01 here in the dataset's units, in its normalized world there), and it renders over the dataset's
+background (white for mi_objects/colmap, as our run) where simple_trainer has none.
 
 Scores: the test views rendered by gsplat, compared by our metrics (:mod:`mi_gaussians.metrics`, through
 ``evaluate.display``, as ``mi-gs`` scores its own) and, as a cross-check, the same model exported to our layout and

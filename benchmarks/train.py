@@ -78,12 +78,12 @@ def run_one(name: str, milestones: list[int], out_root: Path, variant: str, sche
     n = np.asarray(h.gaussians)
     t = np.diff(np.asarray([0.0] + h.seconds))
     print(f"\n{name}: seconds per iteration vs Gaussians")
-    print("| Gaussians | s / iteration |\n|---:|---:|")
+    print("| Gaussians | ms / iteration |\n|---:|---:|")
     edges = np.unique(np.quantile(n, np.linspace(0, 1, 9)).astype(int))
     for lo, hi in zip(edges[:-1], edges[1:]):
         sel = (n >= lo) & (n <= hi)
         if sel.sum() > 20:
-            print(f"| {int(np.median(n[sel])):,} | {np.median(t[sel]):.3f} |")
+            print(f"| {int(np.median(n[sel])):,} | {1e3 * np.median(t[sel]):.2f} |")
     (out / "bench.json").write_text(json.dumps(rows, indent=2))
     return rows
 
