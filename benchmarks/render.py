@@ -39,19 +39,21 @@ def make_scene(n: int, seed: int = 0) -> dict:
         sh_rest=rng.normal(size=(n, 15, 3)) * 0.1).items()}
 
 
-def timed(fn, repeats: int) -> tuple[float, float]:
-    """(median, best) wall seconds over ``repeats`` runs after two warm-ups. This is a shared 2-core VM whose
-    speed drifts by 10-20 % between runs, so both are reported; the best is the least disturbed measurement."""
+def timed(fn, repeats: int, sync=None) -> tuple[float, float]:
+    """(median, best) wall seconds over ``repeats`` runs after two warm-ups, ``sync`` (default ``dr.sync_thread``)
+    waiting for the device around each. This is a shared 2-core VM whose speed drifts by 10-20 % between runs, so both
+    are reported; the best is the least disturbed measurement."""
     import drjit as dr
 
+    sync = sync or dr.sync_thread
     fn()
     fn()
     ts = []
     for _ in range(repeats):
-        dr.sync_thread()
+        sync()
         t0 = time.perf_counter()
         fn()
-        dr.sync_thread()
+        sync()
         ts.append(time.perf_counter() - t0)
     return statistics.median(ts), min(ts)
 
@@ -196,21 +198,10 @@ def gsplat_case(params: dict, cam, ours_rgb: np.ndarray, repeats: int, profile: 
         for v in p.values():
             v.grad = None
 
-    def timed_torch(fn):
-        fn()
-        fn()
-        ts = []
-        for _ in range(repeats):
-            torch.cuda.synchronize()
-            t0 = time.perf_counter()
-            fn()
-            torch.cuda.synchronize()
-            ts.append(time.perf_counter() - t0)
-        return statistics.median(ts), min(ts)
-
     with torch.no_grad():
         rgb = gsplat_peer.rasterize(p, cam)[0].cpu().numpy()
-    out = {"fwd": timed_torch(fwd), "fwd_bwd": timed_torch(fwd_bwd),
+    out = {"fwd": timed(fwd, repeats, torch.cuda.synchronize),
+           "fwd_bwd": timed(fwd_bwd, repeats, torch.cuda.synchronize),
            "diff": float(np.abs(rgb.reshape(ours_rgb.shape) - ours_rgb).mean())}
     if profile:
         print(f"\ngsplat, {len(params['means']):,} Gaussians {cam.width}x{cam.height}, forward + backward:\n"
