@@ -20,14 +20,17 @@ def _keys(rng, n):
     return rng.permutation(k)
 
 
+def _numpy_order(keys):
+    """NumPy's stable ascending order of float keys, -0.0 before +0.0 (the order of their bits, as dr.argsort has it)."""
+    return np.lexsort((np.arange(len(keys)), np.signbit(keys) == 0, keys))
+
+
 @pytest.mark.parametrize("pad", [False, True])
 @pytest.mark.parametrize("n", [0, 1, 2, 1000, 70_001])
 def test_stable_argsort_is_numpys_stable_argsort(pad, n):
     keys = _keys(np.random.default_rng(n), n) if n else np.zeros(0, np.float32)
     got = np.array(stable_argsort(mi.Float(keys), pad=pad), dtype=np.int64)
-    # -0.0 sorts before +0.0 (the order of their bits), as dr.argsort does
-    want = np.lexsort((np.arange(n), np.signbit(keys) == 0, keys)) if n else np.zeros(0, np.int64)
-    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(got, _numpy_order(keys))
 
 
 @pytest.mark.parametrize("digits, pad", [(False, False), (True, False), (True, True)])
@@ -56,6 +59,6 @@ def test_the_sorts_replay_in_a_frozen_function():
         keys = _keys(rng, 3000)
         tiles = rng.integers(0, 4096, 3000).astype(np.uint32)
         order, perm = both(mi.Float(keys), mi.UInt32(tiles))
-        np.testing.assert_array_equal(np.array(order), np.lexsort((np.arange(3000), np.signbit(keys) == 0, keys)))
+        np.testing.assert_array_equal(np.array(order), _numpy_order(keys))
         np.testing.assert_array_equal(np.array(perm), np.argsort(tiles, kind="stable"))
     assert both.n_recordings == 1        # one recording, three replays
