@@ -30,6 +30,9 @@ SCENE_INITS = ("shapes", "random", "sfm")
 #: ``OptimConfig.exposure``: per-image colour compensation ('affine': the 2024 reference's --train_test_exp;
 #: 'bilateral': gsplat's bilateral grids).
 EXPOSURES = ("off", "affine", "bilateral")
+#: ``OptimConfig.ssim_padding``: 'same', the reference's SSIM (zero padding, the mean over every pixel); 'valid',
+#: gsplat's trainer (``fused_ssim(padding="valid")``: the mean over the pixels whose window lies inside the image).
+SSIM_PADDINGS = ("same", "valid")
 #: ``--depth-weight W`` decays from W to W / DEPTH_WEIGHT_DECAY (the 2024 reference's 1.0 to 0.01).
 DEPTH_WEIGHT_DECAY = 100.0
 
@@ -105,9 +108,14 @@ class OptimConfig:
     rotation_lr: float = 1e-3
     adam_eps: float = 1e-15
     lambda_dssim: float = 0.2                # loss = (1 - lambda) L1 + lambda (1 - SSIM)
+    ssim_padding: str = "same"               # SSIM_PADDINGS: the reference's mean over every pixel ('same') or
+                                             # gsplat's over the pixels whose window lies inside the image ('valid')
     sh_degree: int = 3                       # maximum SH degree
     sh_increase_interval: int = 1000         # the active degree goes up by one every this many iterations
     random_background: bool = False          # a random background colour per iteration
+    step_on_refine: bool = False             # also take the Adam step on the iterations that densify or reset
+                                             # opacities, before the refinement (gsplat's order); false: the
+                                             # reference's, whose rebuilt parameters have no gradient there
     depth_weight: float = 0.0                # Mitsuba scenes: weight of the inverse-depth L1 against exact depth
     depth_weight_final: float = 0.0          # ... decaying exponentially to this over position_lr_max_steps (--depth-weight W:
                                              # W to W / DEPTH_WEIGHT_DECAY, the 2024 reference's 1.0 to 0.01)
@@ -133,7 +141,8 @@ class DensifyConfig:
     densify_from_iter: int = 500
     densify_until_iter: int = 15_000
     densification_interval: int = 100
-    opacity_reset_interval: int = 3000
+    opacity_reset_interval: int = 3000       # opacity reset every this many iterations while densifying (and, on a
+                                             # white background, at densify_from_iter, as the reference); 0: never
     grad_threshold: float = 2e-4             # mean NDC-space norm of dL/d(projected mean)
     absgrad: bool = False                    # AbsGS / gsplat's absgrad: the statistic sums |per-pixel gradient|
     absgrad_threshold: float = 8e-4          # grad_threshold in absgrad mode (gsplat's advice for absgrad)
@@ -141,8 +150,11 @@ class DensifyConfig:
     split_count: int = 2                     # a split Gaussian becomes this many
     split_scale_divisor: float = 1.6         # (0.8 * split_count) in the reference
     min_opacity: float = 0.005               # prune below this opacity
-    max_screen_size: float = 20.0            # after the first opacity reset, prune max 2D radius above this (px)
-    max_world_scale: float = 0.1             # ... or max world scale above this times the extent
+    prune_large_after: int = 3000            # after this iteration also prune the Gaussians that are too large:
+    max_world_scale: float = 0.1             # max world scale above this times the extent, or
+    max_screen_fraction: float = 0.0         # max 2D radius above this fraction of max(width, height) in any view since
+                                             # the last densification (gsplat's prune_scale2d, 0.15 when it is on);
+                                             # 0: off, the reference's effective rule (its 20 px test never fires)
     reset_opacity: float = 0.01              # opacity reset: opacity = min(opacity, reset_opacity)
 
 
@@ -210,9 +222,12 @@ class TrainConfig:
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
-    # Fields that existed in earlier versions and were removed because they had no effect; a saved config.json that
-    # still names them loads (the values are ignored).
-    RETIRED = {"RasterConfig": ("tile_size",), "DataConfig": ("random_init",)}   # (random_init: now data.init)
+    # Fields that existed in earlier versions and were removed; a saved config.json that still names them loads (the
+    # values are ignored). tile_size had no effect; densify.max_screen_size (pixels) was a rule stated in pixels, which
+    # pruned twice the share of a 400-pixel image as of a 200-pixel one: densify.max_screen_fraction replaces it,
+    # relative to the image (a run recorded with it resumes under the new rule).
+    RETIRED = {"RasterConfig": ("tile_size",), "DataConfig": ("random_init",),   # (random_init: now data.init)
+               "DensifyConfig": ("max_screen_size",)}
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
@@ -337,8 +352,8 @@ RULES: dict[str, "Range | tuple[str, ...]"] = {
     "data.background": Range(0),
     "optim.iterations": _COUNT, "optim.position_lr_max_steps": _COUNT, "optim.sh_degree": Range(0, 3),
     "optim.sh_increase_interval": _COUNT, "optim.lambda_dssim": _FRACTION, "optim.adam_eps": _POSITIVE,
-    "optim.exposure": EXPOSURES, "optim.exposure_grid": Range(2, counts=(3, 3)),
-    "densify.densification_interval": _COUNT, "densify.opacity_reset_interval": _COUNT, "densify.split_count": _COUNT,
+    "optim.exposure": EXPOSURES, "optim.ssim_padding": SSIM_PADDINGS, "optim.exposure_grid": Range(2, counts=(3, 3)),
+    "densify.densification_interval": _COUNT, "densify.split_count": _COUNT,
     "densify.split_scale_divisor": _POSITIVE, "densify.min_opacity": Range(0, 1, open_high=True),
     "densify.reset_opacity": _OPEN_FRACTION,
     "raster.near_plane": _POSITIVE, "raster.guard_band": _POSITIVE, "raster.alpha_min": Range(0, 1, open_high=True),

@@ -2,8 +2,9 @@
 
 The render output is faked (``radii`` and ``means2d_grad`` set by hand) so that every rule is hit on purpose:
 NDC scaling of the pixel gradient, visibility-gated statistics, clone / split / prune counts, exact copies, split
-sampling statistics, the opacity reset, screen/world-size pruning only after the first reset, and the Adam state
-carried through every change. One test drives the strategy with the real rasterizer.
+sampling statistics, the opacity reset and its schedule (off with interval 0), world-size pruning after
+``prune_large_after`` and the optional screen-size pruning relative to the image size, and the Adam state carried
+through every change. One test drives the strategy with the real rasterizer.
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ from mi_gaussians.optim.adam import GaussianAdam
 from mi_gaussians.optim.densify import DefaultStrategy, DensifyState
 from mi_gaussians.optim.strategy import StepInfo, Strategy
 
+#: The 2023 reference's schedule of opacity resets, stated here so that these tests do not depend on the default
+RESETS = dict(opacity_reset_interval=3000)
 EXTENT = 2.0           # clone/split boundary: 0.01 * 2 = 0.02; world-size prune: 0.1 * 2 = 0.2
 W = H = 100            # NDC factor 50: pixel gradient 1e-5 -> 5e-4 (dense), 1e-6 -> 5e-5 (not)
 HIGH, LOW = 1e-5, 1e-6
@@ -94,7 +97,8 @@ SCENE = [
     (dict(sigma=0.01, opacity=0.001), LOW, 3),                                 # 3 pruned (opacity)
     (dict(sigma=0.01, opacity=0.5), 1e-3, 0),                                  # 4 invisible: its gradient is ignored
     (dict(sigma=0.3, opacity=0.5), LOW, 10),                                   # 5 world-huge (pruned after 3000)
-    (dict(sigma=0.01, opacity=0.5), LOW, 30),                                  # 6 screen-huge (pruned after 3000)
+    (dict(sigma=0.01, opacity=0.5), LOW, 30),                                  # 6 screen-huge: 0.3 of W = H = 100
+                                                                               # (pruned after 3000 when that is on)
     (dict(sigma=0.01, opacity=0.003), HIGH, 5),                                # 7 cloned, then it and its clone pruned
 ]
 
@@ -106,7 +110,7 @@ def crafted():
 
 
 # ---------------------------------------------------------------------------------------------- statistics
-def test_statistics_ndc_scaling_visibility_and_max_radii():
+def test_statistics_ndc_scaling_visibility_and_max_screen():
     params = build([dict(sigma=0.01, opacity=0.5)] * 3)
     s = DefaultStrategy(DensifyConfig(), EXTENT)
     state = s.initialize_state(params.n)
@@ -117,11 +121,15 @@ def test_statistics_ndc_scaling_visibility_and_max_radii():
     # (gx * W/2, gy * H/2) = (3e-4, 2e-4) for W = 200, H = 100
     np.testing.assert_allclose(st["grad_accum"], [math.hypot(3e-4, 2e-4), 0.0, math.hypot(1e-4, 1e-4)], rtol=1e-6)
     np.testing.assert_array_equal(st["denom"], [1, 0, 1])
-    np.testing.assert_array_equal(st["max_radii"], [4, 0, 7])
+    # radii as a fraction of the view's max(W, H) = 200
+    np.testing.assert_allclose(st["max_screen"], [4 / 200, 0, 7 / 200], rtol=1e-6)
     s.step_post_backward(params, state, 11, fake_out([2, 9, 8], [0.0, 0.0, 0.0], width=200, height=100))
     st = stats(s, state)
     np.testing.assert_array_equal(st["denom"], [2, 1, 2])
-    np.testing.assert_array_equal(st["max_radii"], [4, 9, 8])
+    np.testing.assert_allclose(st["max_screen"], [4 / 200, 9 / 200, 8 / 200], rtol=1e-6)
+    # a view of another size: its radii count relative to its own size (12 px of 60 = 0.2)
+    s.step_post_backward(params, state, 12, fake_out([12, 1, 1], [0.0, 0.0, 0.0], width=40, height=60))
+    np.testing.assert_allclose(stats(s, state)["max_screen"], [0.2, 9 / 200, 8 / 200], rtol=1e-6)
 
 
 def test_mean_gradient_counts_only_visible_iterations():
@@ -171,35 +179,54 @@ def test_clone_split_prune_counts_values_and_moments():
     # statistics reset for all remaining rows
     st = stats(s, state)
     assert len(st["grad_accum"]) == 8 and not st["grad_accum"].any() and not st["denom"].any()
-    assert not st["max_radii"].any()
+    assert not st["max_screen"].any()
 
 
-def test_big_gaussians_pruned_only_after_the_first_reset():
-    cfg = DensifyConfig()
-    for step, expect in ((3000, False), (3100, True)):
-        params, out = crafted()
-        s = DefaultStrategy(cfg, EXTENT)
-        state = s.initialize_state(params.n)
-        if step == 3100:   # the screen-size test uses the max radius over the interval, not the last one
-            s.step_post_backward(params, state, 3050, out)
-            out = fake_out([r if i != 6 else 2 for i, (_, _, r) in enumerate(SCENE)], [gx for _, gx, _ in SCENE])
-        before = snapshot(params)
-        info = s.step_post_backward(params, state, step, out)
-        means = snapshot(params)["means"]["value"]
-        present = [bool(np.any(np.all(means == before["means"]["value"][i], axis=1))) for i in (5, 6)]
-        if expect:
-            assert info.pruned == 5 and present == [False, False]
-        else:
-            assert info.pruned == 3 and present == [True, True]
-            assert info.opacity_reset
-
-
-def test_screen_size_test_can_be_disabled_like_the_reference():
-    params, out = crafted()
-    s = DefaultStrategy(dataclasses.replace(DensifyConfig(), max_screen_size=float("inf")), EXTENT)
+def present_after(step, cfg, out=None, warmup=None):
+    """Whether the world-huge row 5 and the screen-huge row 6 of the crafted scene survive a densification at
+    ``step`` (after one statistics-only iteration ``warmup`` when given), and the step's info."""
+    params, crafted_out = crafted()
+    s = DefaultStrategy(cfg, EXTENT)
     state = s.initialize_state(params.n)
-    info = s.step_post_backward(params, state, 3100, out)
-    assert info.pruned == 4     # 3, 7, clone of 7 and the world-huge 5; the screen-huge 6 stays
+    if warmup is not None:
+        s.step_post_backward(params, state, warmup, crafted_out)
+    before = snapshot(params)
+    info = s.step_post_backward(params, state, step, out or crafted_out)
+    means = snapshot(params)["means"]["value"]
+    return [bool(np.any(np.all(means == before["means"]["value"][i], axis=1))) for i in (5, 6)], info
+
+
+def test_big_gaussians_pruned_only_after_prune_large_after():
+    screen = dataclasses.replace(DensifyConfig(**RESETS), max_screen_fraction=0.2)
+    present, info = present_after(3000, screen)
+    assert info.pruned == 3 and present == [True, True] and info.opacity_reset
+    # the screen-size test uses the largest radius since the last densification, not the last one
+    smaller = fake_out([r if i != 6 else 2 for i, (_, _, r) in enumerate(SCENE)], [gx for _, gx, _ in SCENE])
+    present, info = present_after(3100, screen, smaller, warmup=3050)
+    assert info.pruned == 5 and present == [False, False]
+    # the start is a setting of its own: resets off (interval 0) keeps the prunes, prune_large_after moves them
+    present, info = present_after(3100, dataclasses.replace(screen, opacity_reset_interval=0))
+    assert info.pruned == 5 and present == [False, False]
+    present, info = present_after(3100, dataclasses.replace(screen, prune_large_after=5000))
+    assert info.pruned == 3 and present == [True, True]
+
+
+def test_screen_size_prune_is_off_by_default_like_the_reference():
+    """The reference's 20 px test never fires (its densification_postfix zeroes max_radii2D first): by default only
+    the world-size test prunes large Gaussians."""
+    assert DensifyConfig().max_screen_fraction == 0
+    present, info = present_after(3100, DensifyConfig())
+    assert info.pruned == 4 and present == [False, True]     # 3, 7, clone of 7 and the world-huge 5; 6 stays
+
+
+def test_screen_size_prune_is_relative_to_the_image():
+    """The same Gaussian, 30 px across in views of 100 and of 200 pixels: a fraction of 0.2 prunes it in the first
+    (0.3 of the image) and not in the second (0.15), where a rule in pixels would prune both; max(W, H) counts."""
+    cfg = dataclasses.replace(DensifyConfig(), max_screen_fraction=0.2)
+    radii, grads = [r for _, _, r in SCENE], [gx for _, gx, _ in SCENE]
+    for width, height, pruned in ((100, 100, True), (200, 200, False), (200, 50, False), (50, 120, True)):
+        present, _ = present_after(3100, cfg, fake_out(radii, grads, width=width, height=height))
+        assert present[1] is not pruned, (width, height)
 
 
 def test_split_sampling_statistics():
@@ -247,7 +274,7 @@ def test_opacity_reset_values_and_moments():
     ops = [0.5, 0.9, 0.007, 0.011, 0.02]
     params = build([dict(sigma=0.01, opacity=p) for p in ops])
     before = snapshot(params)
-    s = DefaultStrategy(DensifyConfig(), EXTENT)
+    s = DefaultStrategy(DensifyConfig(**RESETS), EXTENT)
     state = s.initialize_state(params.n)
     info = s.step_post_backward(params, state, 3000, fake_out(np.full(5, 3), np.full(5, LOW)))
     assert info.opacity_reset and info.densified and info.reset == 4
@@ -263,11 +290,14 @@ def test_opacity_reset_values_and_moments():
             np.testing.assert_array_equal(after[key][f], before[key][f])
 
 
-@pytest.mark.parametrize("white, step, expect", [(True, 500, True), (False, 500, False), (True, 600, False),
-                                                 (False, 6000, True), (False, 15000, False)])
-def test_opacity_reset_schedule(white, step, expect):
+@pytest.mark.parametrize("white, step, every, expect", [
+    (True, 500, 3000, True), (False, 500, 3000, False), (True, 600, 3000, False), (False, 6000, 3000, True),
+    (False, 15000, 3000, False), (True, 500, 0, False), (False, 3000, 0, False), (False, 6000, 0, False)])
+def test_opacity_reset_schedule(white, step, every, expect):
+    """Every ``every`` iterations while densifying, and at densify_from_iter on a white background (the reference);
+    never with an interval of 0 (gsplat 1.5.3 as it runs)."""
     params = build([dict(sigma=0.01, opacity=0.5)] * 2)
-    s = DefaultStrategy(DensifyConfig(), EXTENT, white_background=white)
+    s = DefaultStrategy(DensifyConfig(opacity_reset_interval=every), EXTENT, white_background=white)
     info = s.step_post_backward(params, s.initialize_state(params.n), step, fake_out([3, 3], [LOW, LOW]))
     assert info.opacity_reset == expect
     p = 1 / (1 + np.exp(-np.array(params["opacities"], np.float64)))
@@ -306,7 +336,8 @@ def test_state_export_import():
     s.step_post_backward(params, state, 600, out)
     s.step_post_backward(params, state, 601, fake_out(np.full(8, 6), np.full(8, HIGH * 2, np.float32)))
     arrays, meta = s.export_state(state)
-    assert arrays["denom"].tolist() == [1] * 8 and arrays["grad_accum"].max() > 0 and arrays["max_radii"].max() == 6
+    assert arrays["denom"].tolist() == [1] * 8 and arrays["grad_accum"].max() > 0
+    np.testing.assert_allclose(arrays["max_screen"].max(), 6 / W, rtol=1e-6)
     s2 = DefaultStrategy(DensifyConfig(), EXTENT)
     state2 = s2.import_state(arrays, meta, params.n)
     assert s2.seed == 4 and state2.draws == state.draws == 1 and isinstance(state2, DensifyState)
@@ -315,6 +346,11 @@ def test_state_export_import():
     assert stats(s2, s2.import_state({}, {}, 5))["denom"].tolist() == [0] * 5     # no saved statistics: fresh
     with pytest.raises(ValueError, match="lengths"):
         s2.import_state(arrays, meta, 9)
+    # a checkpoint of an earlier version (max_radii in pixels, image sizes unknown): the radius statistic restarts
+    legacy = {"grad_accum": arrays["grad_accum"], "denom": arrays["denom"], "max_radii": np.full(8, 6, np.int32)}
+    st = stats(s2, s2.import_state(legacy, meta, params.n))
+    np.testing.assert_array_equal(st["grad_accum"], arrays["grad_accum"])
+    assert not st["max_screen"].any()
 
 
 # ---------------------------------------------------------------------------------------------- real renderer
@@ -341,7 +377,8 @@ def test_with_the_real_rasterizer():
         info = s.step_post_backward(params, state, step, out)
         if step == 599:
             st = stats(s, state)
-            assert np.all(st["grad_accum"][:-1] > 0) and st["denom"][-1] == 0 and st["max_radii"][-1] == 0
+            assert np.all(st["grad_accum"][:-1] > 0) and st["denom"][-1] == 0 and st["max_screen"][-1] == 0
+            assert np.all(st["max_screen"][:-1] > 0)
             params.step()
     assert info.split == n - 1 and info.cloned == 0 and params.n == n + (n - 1)   # sigma 0.1 > 0.01: split
     out = render(params.gaussians, cam)

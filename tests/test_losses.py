@@ -263,6 +263,33 @@ def test_photometric_loss_value_and_gradient(lam):
     assert np.abs(np.array(dr.grad(y2)) - fd_y)[smooth].max() < 1e-3 * np.abs(fd_y).max()
 
 
+def valid_loss_ref(a, b, lam):
+    """gsplat's trainer's loss in float64: SSIM as a "valid" convolution, i.e. the reference map's interior mean."""
+    return (1 - lam) * np.abs(a - b).mean() + lam * (1 - ssim_map_ref(a, b)[5:-5, 5:-5].mean())
+
+
+def test_photometric_loss_over_the_valid_region():
+    """ssim_padding="valid": value and gradient against the float64 interior mean and finite differences (pixels
+    near the edge get gradient only through the windows of interior pixels), and images too small for it refused."""
+    rng = np.random.default_rng(11)
+    a = rng.random((16, 19, 3)).astype(np.float32).astype(np.float64)
+    b = np.clip(a + 0.2 * rng.standard_normal(a.shape), 0, 1).astype(np.float32).astype(np.float64)
+    x = owned_tensor(a)
+    dr.enable_grad(x)
+    v = losses.photometric_loss(x, owned_tensor(b), 0.2, "valid")
+    dr.backward(v)
+    assert abs(v[0] - valid_loss_ref(a, b, 0.2)) < 1e-6
+    assert abs(v[0] - loss_ref(a, b, 0.2)) > 1e-3                  # not the zero-padded mean
+    fd = central_fd(lambda t: valid_loss_ref(t, b, 0.2), a, eps=1e-7)
+    smooth = np.abs(a - b) > 1e-3
+    assert np.abs(np.array(dr.grad(x)) - fd)[smooth].max() < 1e-3 * np.abs(fd).max()
+    assert abs(losses.valid_ssim(owned_tensor(a), owned_tensor(b))[0] - ssim_map_ref(a, b)[5:-5, 5:-5].mean()) < 1e-6
+    with pytest.raises(ValueError, match="larger than 10 pixels"):
+        losses.photometric_loss(owned_tensor(a[:10]), owned_tensor(b[:10]), 0.2, "valid")
+    with pytest.raises(ValueError, match="ssim_padding"):
+        losses.photometric_loss(x, owned_tensor(b), 0.2, "reflect")
+
+
 def test_default_lambda_matches_config():
     from mi_gaussians.config import OptimConfig
 

@@ -26,7 +26,7 @@ def small_config(iterations=300, **kw) -> TrainConfig:
         optim=OptimConfig(iterations=iterations, position_lr_max_steps=iterations, sh_degree=1,
                           sh_increase_interval=100),
         densify=DensifyConfig(densify_from_iter=100, densify_until_iter=iterations // 2, densification_interval=50,
-                              opacity_reset_interval=150),
+                              opacity_reset_interval=150, prune_large_after=150),
         checkpoint_every=kw.pop("checkpoint_every", 100), eval_every=100, save_iterations=(), **kw)
 
 
@@ -81,7 +81,7 @@ def test_checkpoint_round_trip_is_exact(scene, tmp_path):
     for k in sa:
         np.testing.assert_array_equal(sa[k], sb[k], err_msg=k)
     (da, ma), (db, mb) = a.strategy.export_state(a.strategy_state), b.strategy.export_state(b.strategy_state)
-    assert da.keys() == db.keys() == {"grad_accum", "denom", "max_radii"} and da["denom"].max() > 0
+    assert da.keys() == db.keys() == {"grad_accum", "denom", "max_screen"} and da["denom"].max() > 0
     for k in da:
         np.testing.assert_array_equal(da[k], db[k], err_msg=k)
     assert ma == mb and ma["draws"] > 0

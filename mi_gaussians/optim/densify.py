@@ -20,17 +20,19 @@ Rules (the reference ``train.py`` / ``densify_and_prune``; ``step`` is the 1-bas
             grad_accum += |(gx W/2, gy H/2)|     (pixel gradient in NDC units, as the reference CUDA rasterizer reports it;
                                                   with absgrad (AbsGS, gsplat) g is the sum over pixels of |each
                                                   pixel's contribution|, per axis, and the threshold absgrad_threshold)
-            denom += 1;  max_radii = max(max_radii, radii)
+            denom += 1;  max_screen = max(max_screen, radii / max(W, H))
         if step > densify_from_iter and step % densification_interval == 0:
             grad = grad_accum / denom (0 where denom == 0)
             clone: grad >= threshold and max(exp(scales)) <= percent_dense * extent      (exact copies)
             split: grad >= threshold and max(exp(scales)) >  percent_dense * extent      (clones are not candidates)
                    split_count children, mean x + R(q) (sigma * n), n ~ N(0, I), scale log(sigma / split_scale_divisor),
                    other parameters copied; the original is removed
-            prune: sigmoid(opacity) < min_opacity, and when step > opacity_reset_interval also
-                   max_radii > max_screen_size or max(exp(scales)) > max_world_scale * extent
+            prune: sigmoid(opacity) < min_opacity, and when step > prune_large_after also
+                   max(exp(scales)) > max_world_scale * extent, or (when max_screen_fraction > 0)
+                   max_screen > max_screen_fraction
             statistics reset to zero (all remaining rows)
-        if step % opacity_reset_interval == 0 or (white_background and step == densify_from_iter):
+        if opacity_reset_interval > 0 and (step % opacity_reset_interval == 0
+                                           or (white_background and step == densify_from_iter)):
             opacity = logit(min(sigmoid(opacity), reset_opacity)); opacity's Adam moments zeroed
 
 Row order is the reference's: [originals that were neither split nor pruned, clones, children (copy-major: first child
@@ -40,10 +42,16 @@ originals and pruned rows in one call (same result, two state rewrites instead o
 
 Deliberate differences from the reference code (each flagged where it is implemented):
 
-* Screen-size pruning is live. The reference's ``densification_postfix`` zeroes ``max_radii2D`` before its prune
-  test, so its ``max_radii2D > 20`` test never fires (only the world-size test does); we apply the rule as documented
-  in ``docs/conventions.md``: new rows inherit their source's ``max_radii`` (as gsplat does) and the test uses them. Set
-  ``DensifyConfig.max_screen_size = float("inf")`` to reproduce the reference's effective behaviour.
+* Screen-size pruning is stated relative to the image, and off by default. The reference's
+  ``densification_postfix`` zeroes ``max_radii2D`` before its prune test, so its ``max_radii2D > 20`` (pixels) test
+  never fires (only the world-size test does), which ``max_screen_fraction = 0`` reproduces. A rule in pixels would
+  prune a larger share of the Gaussians the larger the image (20 px is 10 % of a 200-pixel image, 5 % of a 400-pixel
+  one); when on, ours is gsplat's: the largest radius over the views since the last densification, divided by each
+  view's max(W, H), against ``max_screen_fraction`` (gsplat's ``prune_scale2d``, 0.15); new rows inherit their
+  source's value, as in gsplat.
+* The large-Gaussian prunes start after ``prune_large_after`` (the reference and gsplat: after the first opacity
+  reset, 3000), a setting of its own so that turning resets off (``opacity_reset_interval = 0``, what gsplat 1.5.3
+  effectively does: its reset test is always false) keeps them.
 * The opacity reset keeps a logit unchanged when its opacity is already below ``reset_opacity`` (the reference round
   trips it through sigmoid and logit: equal up to float rounding, except that very negative logits would become -inf).
 * ``densify_until_iter`` bounds everything with ``step < densify_until_iter`` exactly as the reference's
@@ -85,7 +93,7 @@ class DensifyState:
 
     grad_accum: "mi.Float"      # sum of NDC-space |dL/d mean2d| over the iterations where the Gaussian was visible
     denom: "mi.Float"           # number of those iterations
-    max_radii: "mi.Int32"       # largest screen radius (px) seen
+    max_screen: "mi.Float"      # largest screen radius seen, as a fraction of its view's max(width, height)
     draws: int = 0              # densifications that drew split samples (the random stream's counter)
 
     @property
@@ -96,7 +104,7 @@ class DensifyState:
         """Zero statistics for ``n`` Gaussians (the counter carries on). Opaque arrays, not literals: a frozen step
         taking the state would otherwise see literal inputs once and evaluated ones after, and record twice."""
         self.grad_accum, self.denom = dr.opaque(mi.Float, 0, n), dr.opaque(mi.Float, 0, n)
-        self.max_radii = dr.opaque(mi.Int32, 0, n)
+        self.max_screen = dr.opaque(mi.Float, 0, n)
 
 
 def _rows3(t) -> "mi.Vector3f":
@@ -131,14 +139,14 @@ class DefaultStrategy(Strategy):
 
     # ------------------------------------------------------------------ state
     def initialize_state(self, n: int) -> DensifyState:
-        state = DensifyState(grad_accum=None, denom=None, max_radii=None)
+        state = DensifyState(grad_accum=None, denom=None, max_screen=None)
         state.reset(n)
         return state
 
     def export_state(self, state: DensifyState) -> tuple[dict[str, np.ndarray], dict]:
         arrays = {"grad_accum": np.array(state.grad_accum, dtype=np.float32),
                   "denom": np.array(state.denom, dtype=np.float32),
-                  "max_radii": np.array(state.max_radii, dtype=np.int32)}
+                  "max_screen": np.array(state.max_screen, dtype=np.float32)}
         return arrays, {"kind": "default", "seed": self.seed, "draws": state.draws}
 
     def import_state(self, arrays: dict, meta: dict, n: int) -> DensifyState:
@@ -146,13 +154,17 @@ class DefaultStrategy(Strategy):
             raise ValueError("the checkpoint was written by another densification strategy")
         state = self.initialize_state(n)
         if arrays:
-            lengths = {len(arrays[k]) for k in ("grad_accum", "denom", "max_radii")}
-            if lengths != {n}:
+            # (a checkpoint of an earlier version holds max_radii in pixels, of unknown image sizes: that statistic
+            # restarts from zero, as after any densification)
+            keys = [k for k in ("grad_accum", "denom", "max_screen") if k in arrays]
+            lengths = {len(arrays[k]) for k in keys}
+            if "grad_accum" not in arrays or "denom" not in arrays or lengths != {n}:
                 raise ValueError(f"densification statistics of lengths {sorted(lengths)} for {n} Gaussians")
             state.grad_accum = owned_array(mi.Float, np.asarray(arrays["grad_accum"], np.float32))
             state.denom = owned_array(mi.Float, np.asarray(arrays["denom"], np.float32))
-            state.max_radii = owned_array(mi.Int32, np.asarray(arrays["max_radii"], np.int32))
-            dr.eval(state.grad_accum, state.denom, state.max_radii)
+            if "max_screen" in arrays:
+                state.max_screen = owned_array(mi.Float, np.asarray(arrays["max_screen"], np.float32))
+            dr.eval(state.grad_accum, state.denom, state.max_screen)
         if meta:
             self.seed = int(meta.get("seed", self.seed))
             state.draws = int(meta.get("draws", 0))
@@ -166,19 +178,23 @@ class DefaultStrategy(Strategy):
             out.request_absgrad()
 
     def step_post_backward(self, params: GaussianAdam, state: DensifyState, step: int, out) -> StepInfo:
-        """Update the statistics and, on the scheduled iterations, densify / prune / reset opacities.
+        """Update the statistics and, on the scheduled iterations, densify / prune / reset opacities (:meth:`refine`).
 
         Counts are read back only on those iterations. When rows or values were rebuilt (``info.changed``) every
         parameter's gradient has been cleared and the trainer should skip the Adam step (see the module docstring)."""
-        cfg = self.cfg
-        info = StepInfo(n=params.n)
-        if step >= cfg.densify_until_iter:
-            return info
-        if state.n != params.n:
-            raise ValueError(f"densification statistics cover {state.n} Gaussians but the model has {params.n}: "
-                             "change rows only through the strategy")
+        if step >= self.cfg.densify_until_iter:
+            return StepInfo(n=params.n)
+        self._check_size(params, state)
         self._accumulate(state, out)
+        return self.refine(params, state, step)
 
+    def refine(self, params: GaussianAdam, state: DensifyState, step: int) -> StepInfo:
+        """Densify / prune / reset opacities when iteration ``step`` is scheduled to, from the statistics gathered so
+        far (nothing otherwise)."""
+        info = StepInfo(n=params.n)
+        if step >= self.cfg.densify_until_iter:
+            return info
+        self._check_size(params, state)
         if self._densifies_at(step):
             info.cloned, info.split, info.pruned = self._densify_and_prune(params, state, step)
             info.densified = info.changed = True
@@ -193,14 +209,21 @@ class DefaultStrategy(Strategy):
             info.n = params.n
         return info
 
+    @staticmethod
+    def _check_size(params: GaussianAdam, state: DensifyState) -> None:
+        if state.n != params.n:
+            raise ValueError(f"densification statistics cover {state.n} Gaussians but the model has {params.n}: "
+                             "change rows only through the strategy")
+
     def _densifies_at(self, step: int) -> bool:
         cfg = self.cfg
         return cfg.densify_from_iter < step < cfg.densify_until_iter and step % cfg.densification_interval == 0
 
     def _resets_at(self, step: int) -> bool:
         cfg = self.cfg
-        return step < cfg.densify_until_iter and (
-            step % cfg.opacity_reset_interval == 0 or (self.white_background and step == cfg.densify_from_iter))
+        every = cfg.opacity_reset_interval
+        return every > 0 and step < cfg.densify_until_iter and (
+            step % every == 0 or (self.white_background and step == cfg.densify_from_iter))
 
     def refines_at(self, step: int) -> bool:
         return self._densifies_at(step) or self._resets_at(step)
@@ -217,6 +240,7 @@ class DefaultStrategy(Strategy):
         if dr.width(radii) != st.n:
             raise ValueError(f"render output has {dr.width(radii)} Gaussians, the statistics {st.n}")
         height, width = int(out.rgb.shape[0]), int(out.rgb.shape[1])
+        screen = mi.Float(radii) * dr.opaque(mi.Float, 1.0 / max(width, height))
         grad = dr.detach(out.means2d_absgrad if self.cfg.absgrad else out.means2d_grad)
         # the reference rasterizer reports dL/d(mean2d) in NDC units: pixel gradient times W/2 and H/2
         gx = grad.x * dr.opaque(mi.Float, 0.5 * float(width))
@@ -224,9 +248,9 @@ class DefaultStrategy(Strategy):
         visible = (radii > 0) & active
         st.grad_accum = dr.select(visible, st.grad_accum + dr.sqrt(dr.fma(gx, gx, gy * gy)), st.grad_accum)
         st.denom = dr.select(visible, st.denom + 1.0, st.denom)
-        st.max_radii = dr.select(visible & (radii > st.max_radii), radii, st.max_radii)
+        st.max_screen = dr.select(visible, fmax(st.max_screen, screen), st.max_screen)
         # evaluated with the next kernel launch (the optimizer step's dr.eval), without a sync here
-        dr.schedule(st.grad_accum, st.denom, st.max_radii)
+        dr.schedule(st.grad_accum, st.denom, st.max_screen)
 
     def _split_normals(self, st: DensifyState, m: int) -> "mi.Vector3f":
         """m standard-normal 3-vectors from this densification's counted random stream."""
@@ -256,21 +280,21 @@ class DefaultStrategy(Strategy):
         # .repeat(k, 1) in the reference
         child_src = dr.tile(split_idx, k) if n_split else split_idx   # (dr.tile fails on width 0)
         src = concat([clone_idx, child_src])
-        max_radii = st.max_radii
+        max_screen = st.max_screen
         if dr.width(src):
             new_rows = params.rows(src)
             if n_split:
                 new_rows.update(self._split_children(params, st, clone_idx, child_src))
             params.append(new_rows)
-            max_radii = concat([max_radii, dr.gather(mi.Int32, max_radii, src)])
+            max_screen = concat([max_screen, dr.gather(mi.Float, max_screen, src)])
 
         # ---- prune (over every row, new ones included, as the reference) and remove the split originals
         n_all = n + dr.width(src)
         prune = sigmoid(dr.detach(params["opacities"].array)) < float(cfg.min_opacity)
-        if step > cfg.opacity_reset_interval:
-            big_screen = mi.Float(max_radii) > float(cfg.max_screen_size)   # dead code in the reference (see top)
-            big_world = _max3(dr.exp(_rows3(params["scales"]))) > float(cfg.max_world_scale) * self.extent
-            prune = prune | big_screen | big_world
+        if step > cfg.prune_large_after:
+            prune = prune | (_max3(dr.exp(_rows3(params["scales"]))) > float(cfg.max_world_scale) * self.extent)
+            if cfg.max_screen_fraction > 0:     # (off by default: dead code in the reference, see the top)
+                prune = prune | (max_screen > float(cfg.max_screen_fraction))
         is_split = concat([split_mask, dr.zeros(mi.Bool, n_all - n)])
         remove = prune | is_split
         n_pruned = _count(prune & ~is_split)

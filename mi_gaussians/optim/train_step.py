@@ -82,14 +82,14 @@ def composite_target(target, transparency, background, fixed_background) -> "mi.
 
 
 def training_loss(out, target, lambda_dssim, strategy: Strategy, params: GaussianAdam, depth_target=None,
-                  depth_weight=None, exposure=None, view_index=None) -> "mi.Float":
+                  depth_weight=None, exposure=None, view_index=None, ssim_padding: str = "same") -> "mi.Float":
     """The loss an iteration minimizes, the one home of its assembly for the frozen step and the traced loop: the
     photometric (L1 + D-SSIM) loss of render ``out`` (through training view ``view_index``'s colour compensation
     when ``exposure`` is given: :func:`.compensation.make_compensation`) against ``target``, the strategy's and the
     compensation's regularizers, and the depth loss weighted by ``depth_weight`` where a ``depth_target`` is
-    given."""
+    given; ``ssim_padding``: one of :data:`mi_gaussians.config.SSIM_PADDINGS`."""
     image = out.rgb if exposure is None else exposure.apply(out.rgb, view_index)
-    loss = photometric_loss(image, target, lambda_dssim)
+    loss = photometric_loss(image, target, lambda_dssim, ssim_padding)
     for reg in (strategy.regularization(params), None if exposure is None else exposure.regularization(view_index)):
         if reg is not None:
             loss = loss + reg
@@ -107,7 +107,7 @@ class TrainStep:
     traced every time (a reference for tests)."""
 
     def __init__(self, strategy: Strategy, raster: RasterConfig, lambda_dssim: float, fixed_background,
-                 freeze: bool = True):
+                 freeze: bool = True, ssim_padding: str = "same"):
         fixed = tuple(float(b) for b in fixed_background)
         lam = float(lambda_dssim)
 
@@ -119,7 +119,7 @@ class TrainStep:
             strategy.step_pre_backward(params, state, None, out, collect=update_state)
             target = composite_target(inputs.target, inputs.transparency, inputs.background, fixed)
             loss = training_loss(out, target, lam, strategy, params, inputs.depth_target, inputs.depth_weight,
-                                 exposure, inputs.view_index)
+                                 exposure, inputs.view_index, ssim_padding)
             dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
             ok = valid & out.fits & dr.isfinite(loss)
             if update_state:
