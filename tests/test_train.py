@@ -278,3 +278,27 @@ def test_quality_options_train(scene, tmp_path, option):
     assert len(set(counts)) > 2, set(counts)              # densification changed the count several times
     saved = json.loads((tmp_path / "run" / "config.json").read_text())["train"]
     assert (saved["densify"]["absgrad"] if option == "absgrad" else saved["raster"]["antialiased"]) is True
+
+
+@pytest.mark.parametrize("on", [False, True])
+def test_adam_step_on_refinement_iterations(scene, tmp_path, on):
+    """optim.step_on_refine: a densification iteration takes the Adam step (gsplat's order: Adam, then the
+    refinement) or skips it (the reference, whose rebuilt parameters have no gradient there): Adam's step count. The
+    refinement itself waits for the start of the next iteration."""
+    from mi_gaussians.optim.trainer import Trainer
+
+    cfg = small_config(400)
+    cfg = dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, step_on_refine=on))
+    tr = Trainer(load(scene, cfg), cfg, tmp_path / "run", progress=False)
+    densify_at = 150
+    assert tr.strategy.refines_at(densify_at) and not tr.strategy.refines_at(densify_at - 1)
+    while tr.step < densify_at - 1 or tr._pending:      # (queued frozen iterations committed; a rewind goes on)
+        tr.advance() if tr.step < densify_at - 1 else tr._resolve()
+    t_before, n_before = tr.params.moments("means")[0], tr.params.n
+    tr.advance()
+    assert tr.step == densify_at and tr.params.n == n_before and tr._refine_at == densify_at
+    assert tr.params.moments("means")[0] == t_before + int(on)
+    tr.advance()                                         # the refinement, then the next iteration steps either way
+    tr._resolve()
+    assert tr.params.n != n_before and tr._refine_at is None
+    assert tr.params.moments("means")[0] == t_before + int(on) + 1

@@ -103,7 +103,7 @@ def _train_ds(ds, cfg, steps, capacity=None):
 
     tr = Trainer(ds, cfg, tempfile.mkdtemp(), progress=False)
     if capacity is not None:
-        def tiny(instances, n_before):
+        def tiny(instances):
             tr.capacity, tr._peak = capacity, 0
         tr._set_capacity_after_traced = tiny
     while tr.step < steps or tr._pending:
@@ -230,3 +230,36 @@ def test_replays_record_and_compile_nothing_new(scene):  # noqa: F811
     assert len(log.windows[1]) > 20
     unseen = log.unseen(1)
     assert not unseen, f"{len(unseen)} of {len(log.windows[1])} kernels not launched in the warm-up: {unseen[:5]}"
+
+
+def test_the_model_of_a_refinement_iteration_is_scored_before_its_refinement(scene, tmp_path, one_thread):  # noqa: F811
+    """A run that ends on a refinement iteration (150: densification and opacity reset) scores and saves the model of
+    that iteration before the refinement, as the reference's train.py: no unoptimized clones, no opacities just reset
+    to 0.01. Its checkpoint records the refinement as pending; resumed to 200 iterations, the run applies it first and
+    ends as an uninterrupted 200-iteration run does."""
+    import json
+
+    import mi_gaussians as mig
+    from mi_gaussians.optim.trainer import Trainer
+
+    def config(iterations):
+        cfg = small_config(400)
+        return dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, iterations=iterations),
+                                   densify=dataclasses.replace(cfg.densify, densify_until_iter=200))
+
+    short = Trainer(load(scene, config(150)), config(150), tmp_path / "short", progress=False)
+    assert short.strategy.refines_at(150)
+    metrics = short.run()
+    g = mig.Gaussians.load_ply(tmp_path / "short" / "point_cloud.ply")
+    history = json.loads((tmp_path / "short" / "history.json").read_text())
+    assert metrics["gaussians"] == g.n == history["gaussians"][-1] == history["gaussians"][-2]   # no clone added
+    assert np.max(1 / (1 + np.exp(-np.asarray(g.numpy()["opacities"], np.float64)))) > 0.05      # not reset
+    with np.load(tmp_path / "short" / "checkpoints" / "ckpt.npz") as z:
+        assert json.loads(bytes(z["meta"]).decode())["refine_pending"] == 150
+    resumed = Trainer(load(scene, config(200)), config(200), tmp_path / "short", progress=False)
+    resumed.run(resume=True)
+    straight = Trainer(load(scene, config(200)), config(200), tmp_path / "straight", progress=False)
+    straight.run()
+    assert resumed.params.n == straight.params.n != g.n
+    for k, v in straight.gaussians.numpy().items():
+        np.testing.assert_allclose(resumed.gaussians.numpy()[k], v, rtol=1e-4, atol=1e-6, err_msg=k)

@@ -164,7 +164,12 @@ class MCMCStrategy(Strategy):
 
     # ------------------------------------------------------------------ refinement
     def step_post_backward(self, params: GaussianAdam, state: MCMCState, step: int, out) -> StepInfo:
-        """On the refinement iterations: relocate the dead Gaussians, then add new ones up to the cap."""
+        """On the refinement iterations: relocate the dead Gaussians, then add new ones up to the cap (``out`` is not
+        read: MCMC keeps no statistics)."""
+        return self.refine(params, state, step)
+
+    def refine(self, params: GaussianAdam, state: MCMCState, step: int) -> StepInfo:
+        """Relocate the dead Gaussians, then add new ones up to the cap, when ``step`` is a refinement iteration."""
         info = StepInfo(n=params.n)
         if not self.refines_at(step):
             return info

@@ -6,26 +6,27 @@ and saves with its checkpoints. The state is a dataclass of plain Dr.Jit arrays 
 frozen training step can take it as an input. A strategy changes rows (Gaussians) only through the parameter owner
 (:class:`~mi_gaussians.optim.adam.GaussianAdam`), which carries the Adam moments.
 
-One training step (see :mod:`.trainer`)::
+One training step, as gsplat's loop calls it::
 
     out = render(params.gaussians, camera)
     strategy.step_pre_backward(params, state, step, out)
     dr.backward(loss(out))
-    info = strategy.step_post_backward(params, state, step, out)
+    info = strategy.step_post_backward(params, state, step, out)   # statistics, then refine()
     if not info.changed:          # rows were rebuilt: the reference's Adam skips that step
         params.step()
 
-A frozen training step (:mod:`.train_step`) cannot read anything back to the host, so the post-backward hook comes in
-two parts as well: :meth:`Strategy.update_state` (device arithmetic only, masked by ``active``) runs inside the
-frozen step on every iteration, and the trainer runs the whole :meth:`Strategy.step_post_backward` unfrozen on the
-iterations where :meth:`Strategy.refines_at` says rows or values may change (those may synchronize)::
+:meth:`Strategy.step_post_backward` has two parts: the statistics, :meth:`Strategy.update_state` (device arithmetic
+only, masked by ``active``, so that a frozen step (:mod:`.train_step`) can record it), then the host part,
+:meth:`Strategy.refine`, on the iterations where :meth:`Strategy.refines_at` says rows or values may change. Our
+trainer (:mod:`.trainer`) calls the two parts itself: the statistics in the iteration, and the refinement of
+iteration ``k`` after that iteration's evaluation, saves and checkpoint, so that what is scored and saved as the model
+of iteration ``k`` is never one whose new rows have not had a single optimization step (the reference's ``train.py``
+reports and saves before its densification block too)::
 
-    if strategy.refines_at(step):
-        ...the step above...
-    else:                         # frozen: no host work, no synchronization
-        if strategy.updates_state_at(step):
-            strategy.update_state(state, out, active=ok)
-        params.step(active=ok)
+    (iteration k) render, backward; if strategy.updates_state_at(k): strategy.update_state(state, out, active=ok)
+                  Adam step (skipped when strategy.refines_at(k): the reference's rebuilt parameters have none)
+    (host work)   evaluate, save, checkpoint the model of iteration k
+    (before k+1)  if strategy.refines_at(k): strategy.refine(params, state, k)
 
 Two more hooks run on every iteration, in both paths, as device work: :meth:`Strategy.regularization` adds a term to
 the loss before the backward pass, and :meth:`Strategy.step_post_update` changes values after the Adam step (MCMC's
@@ -97,19 +98,27 @@ class Strategy:
         return None
 
     def step_post_update(self, params, state, step, means_lr, active=True) -> None:
-        """Called after the Adam step of every iteration (frozen or traced; also after a refinement): device work
+        """Called after the Adam step (or its place) of every iteration, frozen or traced: device work
         only, left undone where the 1-element ``mi.Bool`` ``active`` is False. ``step``: the iteration as a
         1-element ``mi.UInt32``; ``means_lr``: this iteration's position learning rate (1-element ``mi.Float``).
         The default does nothing."""
 
     def step_post_backward(self, params, state, step: int, out) -> StepInfo:
         """Called after ``dr.backward`` and before the Adam step: update the statistics in ``state`` from ``out``
-        (the :class:`~mi_gaussians.raster.rasterize.RenderOutput` of this iteration) and change rows through
-        ``params`` when due."""
+        (the :class:`~mi_gaussians.raster.rasterize.RenderOutput` of this iteration) when :meth:`updates_state_at`,
+        then :meth:`refine` when :meth:`refines_at`."""
+        if self.updates_state_at(step):
+            self.update_state(state, out)
+        return self.refine(params, state, step) if self.refines_at(step) else StepInfo(n=params.n)
+
+    def refine(self, params, state, step: int) -> StepInfo:
+        """The host part of iteration ``step`` (:meth:`refines_at`): change rows or values through ``params``
+        from the statistics in ``state``. When it does (``info.changed``) every parameter is a fresh leaf without
+        gradient. May synchronize."""
         raise NotImplementedError
 
     def refines_at(self, step: int) -> bool:
-        """True when :meth:`step_post_backward` may change rows or values at iteration ``step`` (host work)."""
+        """True when :meth:`refine` may change rows or values at iteration ``step`` (host work)."""
         raise NotImplementedError
 
     def updates_state_at(self, step: int) -> bool:
@@ -119,7 +128,7 @@ class Strategy:
 
     def update_state(self, state, out, active=True) -> None:
         """The statistics part of :meth:`step_post_backward`: device arithmetic only (no readback), left unchanged
-        where the 1-element ``mi.Bool`` ``active`` is False. Used by frozen steps on iterations that do not refine."""
+        where the 1-element ``mi.Bool`` ``active`` is False (a frozen step records it)."""
         raise NotImplementedError
 
     def export_state(self, state) -> tuple[dict[str, np.ndarray], dict]:

@@ -1,4 +1,5 @@
-"""The training loop: view -> render -> L1 + D-SSIM -> dr.backward -> densification strategy -> Adam step.
+"""The training loop: view -> render -> L1 + D-SSIM -> dr.backward -> statistics -> Adam step -> (evaluation, saves)
+-> the densification strategy's refinement.
 
 Outputs (all written atomically into ``out_dir``)::
 
@@ -13,8 +14,14 @@ Outputs (all written atomically into ``out_dir``)::
 
 Iterations are frozen (:mod:`.train_step`: recorded once with ``dr.freeze``, replayed, nothing read back) and queued;
 :meth:`Trainer._resolve` reads their losses and flags every :data:`SYNC_EVERY` iterations and before evaluations,
-checkpoints and refinements. The first iteration and the strategy's refinements run traced (:meth:`Trainer._iteration`);
-``TrainConfig.freeze = False`` traces every iteration.
+checkpoints and refinements. The first iteration and the strategy's refinement iterations run traced
+(:meth:`Trainer._iteration`); ``TrainConfig.freeze = False`` traces every iteration.
+
+A refinement (densification, pruning, opacity reset) of iteration ``k`` runs after that iteration's evaluation, saves
+and checkpoint (:meth:`Trainer._refine`, at the start of iteration ``k + 1``; a checkpoint records it as pending), as
+the reference's ``train.py`` reports and saves before its densification block: the model scored and saved as
+iteration ``k`` is never one with new rows that have not had a single optimization step, and a run whose last
+iteration is a refinement iteration ends without that refinement.
 
 A non-finite loss or parameter stops the run with :class:`TrainingDiverged`; the last good checkpoint stays.
 """
@@ -124,8 +131,10 @@ class Trainer:
         self.exposure = make_compensation(cfg.optim, len(ds.train))
         # the frozen training step (see train_step.py) and the state of the loop around it
         self.train_step = TrainStep(self.strategy, cfg.raster, cfg.optim.lambda_dssim, self.background,
-                                    freeze=cfg.freeze)
+                                    freeze=cfg.freeze, ssim_padding=cfg.optim.ssim_padding)
         self.capacity: int | None = None   # tile-instance capacity of frozen steps (set by the first traced one)
+        self._needed = 0                   # the instances it was made for
+        self._refine_at: int | None = None  # an iteration whose refinement is still to run (see _refine)
         self.overflows = 0                 # instance-capacity overflows (each replays frozen iterations)
         self.syncs = 0                     # device reads of the loop (a densification step's own are not counted)
         self._peak = 0                     # most instances a committed frozen step needed since the last traced one
@@ -155,7 +164,8 @@ class Trainer:
             arrays[f"densify/{k}"] = v
         if self.exposure is not None:
             arrays.update({f"exposure/{k}": v for k, v in self.exposure.export().items()})
-        meta = {"step": self.step, "elapsed": self.elapsed, "history": self.history.to_dict(),
+        meta = {"step": self.step, "refine_pending": self._refine_at, "elapsed": self.elapsed,
+                "history": self.history.to_dict(),
                 "sampler": self.sampler.state(), "bg_rng": self.bg_rng.bit_generator.state,
                 "strategy": strategy_meta, "config": self.cfg.to_dict()}
         arrays["meta"] = np.frombuffer(json.dumps(meta).encode("utf-8"), dtype=np.uint8)
@@ -190,6 +200,9 @@ class Trainer:
         except (KeyError, TypeError, ValueError) as e:
             raise ValueError(f"{path}: checkpoint does not fit this run ({e})") from None
         self.step = int(meta["step"])
+        # (a checkpoint of iteration k written before k's refinement; older checkpoints were written after it)
+        pending = meta.get("refine_pending")
+        self._refine_at = None if pending is None else int(pending)
         if self.step > self.cfg.optim.iterations:
             raise ValueError(f"{path}: the run is already at iteration {self.step}, past the "
                              f"{self.cfg.optim.iterations} iterations asked for")
@@ -222,8 +235,9 @@ class Trainer:
         return idx, bg
 
     def _iteration(self, step: int) -> tuple[float, int]:
-        """One traced iteration (synchronizes: reads the loss and the instance count back); runs the strategy's
-        refinements. Returns (loss, tile instances)."""
+        """One traced iteration (synchronizes: reads the loss and the instance count back). On a refinement iteration
+        it gathers the statistics and leaves the refinement pending (:meth:`_refine`, at the start of the next
+        iteration). Returns (loss, tile instances)."""
         cfg = self.cfg
         o = cfg.optim
         # (a Dr.Jit value, as in the frozen step, so both paths leave the optimizer state of the same type)
@@ -239,24 +253,40 @@ class Trainer:
         loss = training_loss(out, self.target(idx, bg), o.lambda_dssim, self.strategy, self.params,
                              self.depth_targets[idx] if depth else None,
                              dr.opaque(mi.Float, self._depth_weight(step)) if depth else None, self.exposure,
-                             dr.opaque(mi.UInt32, idx))
+                             dr.opaque(mi.UInt32, idx), o.ssim_padding)
         # (a view where nothing is visible gives a loss that does not depend on the parameters)
         dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
         value = float(loss[0])
         self.syncs += 2          # (this read, and the binning's read of its instance count)
         if not math.isfinite(value):
             raise self._diverged(value, step, idx)
-        info = self.strategy.step_post_backward(self.params, self.strategy_state, step, out)
-        if not info.changed:
-            # (after a densification step the reference's parameters are new tensors without gradients, so its
-            # Adam step skips them: we do the same)
+        if self.strategy.updates_state_at(step):
+            self.strategy.update_state(self.strategy_state, out)
+        refines = self.strategy.refines_at(step)
+        if refines and not o.step_on_refine:
+            # (the reference's densification rebuilds the parameters, which then have no gradient, so its Adam
+            # skips this iteration: we do the same; gsplat takes the step, then refines: optim.step_on_refine)
+            self.params.clear_grads()
+        else:
             self.params.step()
         self.strategy.step_post_update(self.params, self.strategy_state, dr.opaque(mi.UInt32, step),
                                        dr.opaque(mi.Float, self._means_lr(step)))
         if self.exposure is not None:          # (every iteration, as the reference's exposure optimizer)
             self.exposure.set_learning_rate(dr.opaque(mi.Float, self.exposure.learning_rate(step)))
             self.exposure.step()
+        if refines:
+            self._refine_at = step
         return value, int(out.n_instances)
+
+    def _refine(self) -> None:
+        """The strategy's refinement of iteration ``self._refine_at`` (densification, pruning, opacity reset), after
+        that iteration's evaluation, saves and checkpoint; the frozen steps' instance capacity follows the new number
+        of Gaussians."""
+        step, self._refine_at = self._refine_at, None
+        n_before = self.params.n
+        self.strategy.refine(self.params, self.strategy_state, step)
+        if self.capacity is not None and self.params.n != n_before:
+            self._set_capacity_after_traced(round(self._needed * self.params.n / n_before))
 
     def _diverged(self, loss: float, step: int, view: int) -> TrainingDiverged:
         return TrainingDiverged(f"the loss became {loss} at iteration {step} (view {self.ds.train[view].name}); the "
@@ -267,11 +297,11 @@ class Trainer:
         instance count) and those where the strategy refines (host work that may synchronize anyway)."""
         return not self.cfg.freeze or self.capacity is None or self.strategy.refines_at(step)
 
-    def _set_capacity_after_traced(self, instances: int, n_before: int) -> None:
-        """The frozen steps' instance capacity after a traced iteration: room for 1.3 times what it needed, or for
-        the peak of the frozen steps before it scaled by the change in the number of Gaussians."""
-        scaled = self._peak * self.params.n / max(n_before, 1)
-        self.capacity = capacity_for(1.3 * max(instances, scaled, 1))
+    def _set_capacity_after_traced(self, instances: int) -> None:
+        """The frozen steps' instance capacity after a traced iteration: room for 1.3 times what it needed, or the
+        peak of the frozen steps before it (a refinement then scales it by the change in the number of Gaussians)."""
+        self._needed = max(instances, self._peak, 1)
+        self.capacity = capacity_for(1.3 * self._needed)
         self._peak = 0
 
     def _view_params(self, idx: int) -> ViewParams:
@@ -351,21 +381,22 @@ class Trainer:
                 or step in cfg.save_iterations or step % cfg.checkpoint_every == 0)
 
     def advance(self) -> None:
-        """Run the next iteration (traced or frozen); frozen ones are committed every :data:`SYNC_EVERY` iterations
-        and before any host work. Afterwards ``self.step`` is the last iteration run or queued (a rewind after an
-        instance overflow moves it back)."""
+        """Run the pending refinement of the iteration before (if any), then the next iteration (traced or frozen);
+        frozen ones are committed every :data:`SYNC_EVERY` iterations and before any host work. Afterwards
+        ``self.step`` is the last iteration run or queued (a rewind after an instance overflow moves it back)."""
         step = self.step + 1
         self._t0 = time.perf_counter()
         try:
+            if self._refine_at is not None:      # (a traced iteration before it: nothing is queued)
+                self._refine()
             if self._traced_at(step):
                 if not self._resolve():
                     return
-                n_before = self.params.n
                 loss, instances = self._iteration(step)
                 self.step = step
                 self._commit(step, loss)
                 if self.cfg.freeze:
-                    self._set_capacity_after_traced(instances, n_before)
+                    self._set_capacity_after_traced(instances)
             else:
                 self._dispatch(step)
                 if self._host_work_at(step) or len(self._pending) >= SYNC_EVERY:
