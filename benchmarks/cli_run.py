@@ -3,23 +3,30 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 
-def train(src: Path, out: Path, iterations: int, options: list[str]) -> dict:
+def train(src: Path, out: Path, iterations: int, options: list[str], code: Path | None = None) -> dict:
     """``mi-gs optimize src -o out --iterations N options...`` and its ``metrics.json``; a finished run in ``out`` is
-    reused, an interrupted one resumed."""
+    reused, an interrupted one resumed. ``code``: another checkout of mi-gaussians to run instead of the installed
+    one (e.g. a ``git worktree`` of an earlier commit, for a before / after comparison in the same session)."""
     if (out / "metrics.json").is_file() and (out / "point_cloud.ply").is_file():
         print(f"{out}: trained already, reused", file=sys.stderr)
         return json.loads((out / "metrics.json").read_text())
-    cmd = [str(Path(sys.executable).parent / "mi-gs"), "optimize", str(src), "-o", str(out), "--iterations",
+    src, out = Path(src).resolve(), Path(out).resolve()
+    cmd = [sys.executable, "-m", "mi_gaussians.cli", "optimize", str(src), "-o", str(out), "--iterations",
            str(iterations), "--eval-every", "0", "--quiet", *options]
     if (out / "checkpoints" / "ckpt.npz").is_file():
         cmd.append("--resume")
+    env = dict(os.environ)
+    if code is not None:
+        env["PYTHONPATH"] = os.pathsep.join([str(Path(code).resolve()), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     t0 = time.time()
-    subprocess.run(cmd, check=True)
+    # (python -m puts the working folder first on the path: the checkout to run)
+    subprocess.run(cmd, check=True, env=env, cwd=None if code is None else Path(code).resolve())
     print(f"{out}: trained in {time.time() - t0:.0f} s", file=sys.stderr)
     return json.loads((out / "metrics.json").read_text())

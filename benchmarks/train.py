@@ -66,7 +66,8 @@ def run_one(name: str, milestones: list[int], out_root: Path, variant: str, sche
     for m in milestones:
         ply = out / ("point_cloud.ply" if m == iters else f"point_cloud_{m}.ply")
         g = mig.Gaussians.load_ply(ply)
-        scores, _ = evaluate_views(g, ds.test, tuple(ds.background), with_lpips=False)
+        scores, _ = evaluate_views(g, ds.test, tuple(ds.background), cfg=cfg.raster, with_lpips=False,
+                                   color_space=ds.color_space)
         s = summarize(scores)
         k = h.iteration.index(m)
         # seconds per iteration around the milestone (the last 200 iterations before it)
