@@ -156,14 +156,21 @@ def test_browser_shows_the_model_and_follows_the_mouse(tmp_path):
         ref = np.asarray(Image.open(tmp_path / "ref.png").convert("RGB"), np.float64) / 255.0
         with sync_playwright() as p:
             browser, page = _open(p, chromium, url, W, H)
-            first = _wait_for_rest(page)
-            page.wait_for_timeout(500)
-            shot = _screenshot(page, tmp_path / "shot.png")
             region = (slice(H // 3, H), slice(0, W // 2))          # below the notification, left of the panel
-            a, b = shot[region], ref[region]
+            b = ref[region]
             assert (b.max(axis=2) > 0.1).mean() > 0.2               # the model covers this region
-            psnr = 10 * math.log10(1 / np.mean((a - b) ** 2))
-            assert psnr > 25, psnr
+            # The browser reports its camera a few times while the page lays out; on a loaded machine a report
+            # can stay unchanged for the viewer's idle time (0.25 s), which then renders it at rest before the
+            # start camera's report arrives. The picture must settle on the start camera's within 30 s.
+            _wait_for_rest(page)
+            t0 = time.time()
+            while True:
+                page.wait_for_timeout(500)
+                a = _screenshot(page, tmp_path / "shot.png")[region]
+                psnr = 10 * math.log10(1 / np.mean((a - b) ** 2))
+                if psnr > 25:
+                    break
+                assert time.time() - t0 < 30, f"the picture is not the start camera's after 30 s: {psnr:.2f} dB"
             page.mouse.move(W * 0.4, H * 0.6)
             page.mouse.down()
             page.mouse.move(W * 0.6, H * 0.65, steps=12)
