@@ -19,7 +19,8 @@ Footprint: a Gaussian of opacity ``o`` reaches alpha >= 1/255 exactly where ``d^
 axis-aligned box of that ellipse is ``|dx| <= sqrt(2 ln(255 o) * Sigma_xx)`` and ``|dy| <= sqrt(2 ln(255 o) * Sigma_yy)``.
 Covering that box (with a tiny safety margin) makes the image independent of the tile grid, unlike the reference's
 3-sigma circle, and is tighter for faint and for elongated Gaussians. ``radii`` keeps the reference definition
-``ceil(3 sqrt(lambda_max))`` because densification thresholds (20 px) are tuned to it.
+``ceil(3 sqrt(lambda_max))``: densification counts a Gaussian as seen where it is > 0, and its optional screen-size
+prune compares it with the image size.
 """
 
 from __future__ import annotations
