@@ -60,7 +60,7 @@ def run_one(name: str, milestones: list[int], out_root: Path, variant: str, sche
     ds = mig.load_dataset(path, resolution=res, background=bg)
     out = out_root / (name if schedule == iters else f"{name}_of_{schedule}")
     tr = Trainer(ds, cfg, out, progress=True)
-    tr.run(resume=(out / "checkpoints" / "ckpt.npz").exists())
+    metrics = tr.run(resume=(out / "checkpoints" / "ckpt.npz").exists())
     h = tr.history
     rows = []
     for m in milestones:
@@ -75,7 +75,8 @@ def run_one(name: str, milestones: list[int], out_root: Path, variant: str, sche
         spi = (h.seconds[k] - h.seconds[k0]) / max(1, k - k0)
         rows.append({"dataset": name, "note": note, "iterations": m, "psnr": s["psnr"], "ssim": s["ssim"],
                      "gaussians": g.n, "minutes": h.seconds[k] / 60.0, "sec_per_iter": spi})
-    # seconds per iteration against the number of Gaussians (binned)
+    # seconds per iteration against the number of Gaussians (binned; the mean: frozen iterations are committed, and
+    # their time recorded, SYNC_EVERY at a time)
     n = np.asarray(h.gaussians)
     t = np.diff(np.asarray([0.0] + h.seconds))
     print(f"\n{name}: seconds per iteration vs Gaussians")
@@ -84,9 +85,27 @@ def run_one(name: str, milestones: list[int], out_root: Path, variant: str, sche
     for lo, hi in zip(edges[:-1], edges[1:]):
         sel = (n >= lo) & (n <= hi)
         if sel.sum() > 20:
-            print(f"| {int(np.median(n[sel])):,} | {1e3 * np.median(t[sel]):.2f} |")
-    (out / "bench.json").write_text(json.dumps(rows, indent=2))
+            print(f"| {int(np.median(n[sel])):,} | {1e3 * np.mean(t[sel]):.2f} |")
+    print_split(name, metrics["loop"], metrics["training_seconds"])
+    (out / "bench.json").write_text(json.dumps({"milestones": rows, "loop": metrics["loop"]}, indent=2))
     return rows
+
+
+#: what each part of the time split (mi_gaussians.optim.loop_state.TIME_PARTS) holds
+PARTS = {"frozen": "frozen steps replayed", "recording": "frozen steps that recorded (trace, record, compile)",
+         "waiting": "waiting for queued frozen steps", "traced": "traced iterations (the first, refinement ones)",
+         "refinement": "refinements (densify, prune, reset)", "other": "the rest of the loop"}
+
+
+def print_split(name: str, loop: dict, training_seconds: float) -> None:
+    """Where a run's training time went (metrics.json's "loop")."""
+    print(f"\n{name}: the training time, {training_seconds / 60:.1f} minutes, by part")
+    print("| part | seconds | share |\n|---|---:|---:|")
+    for part, seconds in loop["seconds"].items():
+        print(f"| {PARTS.get(part, part)} | {seconds:.1f} | {100 * seconds / max(training_seconds, 1e-9):.1f} % |")
+    print(f"recordings {loop['recordings']}, overflows {loop['overflows']} ({loop['replayed']} iterations replayed), "
+          f"traced iterations {loop['traced']}, refinements {loop['refinements']}, syncs {loop['syncs']}; outside the "
+          f"training time: evaluation {loop['outside']['evaluation']:.1f} s, saving {loop['outside']['saving']:.1f} s")
 
 
 def main(argv=None) -> int:

@@ -167,11 +167,11 @@ def measure(ds, cfg, warmup: int, iterations: int, rounds: int, busy: int = 0, p
             run(tr, warmup)
         for _ in range(rounds):
             for freeze, tr in trainers.items():
-                syncs0 = tr.syncs
+                syncs0 = tr.loop.syncs
                 t0 = time.perf_counter()
                 run(tr, iterations)
                 rows[freeze]["seconds"] += time.perf_counter() - t0
-                rows[freeze]["syncs"] += tr.syncs - syncs0
+                rows[freeze]["syncs"] += tr.loop.syncs - syncs0
         for freeze, tr in trainers.items():
             row = rows[freeze]
             with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
@@ -203,7 +203,7 @@ def measure(ds, cfg, warmup: int, iterations: int, rounds: int, busy: int = 0, p
                        host_ms=max(0.0, statistics.median(gaps)), host_mean_ms=max(0.0, statistics.fmean(gaps)),
                        kernel_ms=sum(k.get("execution_time", 0.0) for k in history) / iterations,
                        kernels=len(history) / iterations, syncs=row["syncs"] / measured, gaussians=tr.params.n,
-                       recordings=tr.train_step.recordings, overflows=tr.overflows)
+                       recordings=tr.train_step.recordings, overflows=tr.loop.overflows)
     return rows
 
 

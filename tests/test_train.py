@@ -58,6 +58,14 @@ def test_psnr_rises_and_outputs_are_written(scene, tmp_path):
     assert m["gaussians"] == mig.Gaussians.load_ply(out / "point_cloud.ply").n
     assert set(m["views"]) == {v.name for v in ds.test}
     assert m["iterations_per_second"] > 0
+    # where the time went: the parts of the training time add up to it, and the loop's counts are the run's
+    loop, refining = m["loop"], [s for s in range(1, 601) if tr.strategy.refines_at(s)]
+    assert sum(loop["seconds"].values()) == pytest.approx(m["training_seconds"], abs=0.01)
+    assert loop["seconds"]["other"] < 0.25 * m["training_seconds"], loop
+    assert loop["recordings"] == tr.train_step.recordings >= 1 and loop["seconds"]["recording"] > 0
+    assert len(refining) == 4 and loop["refinements"] == 4 and loop["traced"] == 1 + 4     # (+ the first)
+    assert loop["replayed"] >= loop["overflows"] >= 0 and loop["syncs"] > 0
+    assert loop["outside"]["evaluation"] > 0 and loop["outside"]["saving"] > 0
 
 
 def test_checkpoint_round_trip_is_exact(scene, tmp_path):
@@ -88,6 +96,9 @@ def test_checkpoint_round_trip_is_exact(scene, tmp_path):
     assert a.sampler.state() == b.sampler.state()
     assert a.bg_rng.bit_generator.state == b.bg_rng.bit_generator.state
     assert a.history.to_dict() == b.history.to_dict()
+    la, lb = a.loop.to_dict(), b.loop.to_dict()
+    assert la.pop("outside")["saving"] > lb.pop("outside")["saving"]     # (the checkpoint's own writing)
+    assert la == lb and la["traced"] > 1
     # the next iteration continues identically: same view, same scheduled position rate, same update
     a._iteration(231)
     b._iteration(231)
@@ -140,6 +151,9 @@ def test_kill_9_then_resume_ends_at_the_same_quality(scene, tmp_path):
     assert res.returncode == 0, res.stderr[-2000:]
     straight = json.loads((tmp_path / "straight" / "metrics.json").read_text())
     assert abs(resumed["mean"]["psnr"] - straight["mean"]["psnr"]) < 0.5, (resumed["mean"], straight["mean"])
+    # the loop's counts carried over: the same refinements, and one more traced iteration (the first after resuming)
+    assert resumed["loop"]["refinements"] == straight["loop"]["refinements"]
+    assert resumed["loop"]["traced"] == straight["loop"]["traced"] + 1
 
 
 @pytest.mark.parametrize("freeze", [True, False])

@@ -124,7 +124,7 @@ def test_frozen_training_equals_traced_training(scene, one_thread, capacity):  #
     frozen = _train(scene, cfg, steps, capacity)
     traced = _train(scene, dataclasses.replace(cfg, freeze=False), steps)
     assert frozen.train_step.recordings >= 1 and traced.train_step.recordings == 0
-    assert (frozen.overflows > 0) == (capacity is not None)
+    assert (frozen.loop.overflows > 0) == (capacity is not None)
     assert frozen.step == traced.step == steps
     assert frozen.history.iteration == list(range(1, steps + 1))
     assert_same_training(frozen, traced)
@@ -159,7 +159,7 @@ def test_frozen_training_with_the_cuda_sorts_equals_traced_training(scene, one_t
     cfg = small_config(300)
     frozen = _train(scene, cfg, 120, 512)
     traced = _train(scene, dataclasses.replace(cfg, freeze=False), 120)
-    assert frozen.train_step.recordings >= 1 and frozen.overflows > 0
+    assert frozen.train_step.recordings >= 1 and frozen.loop.overflows > 0
     assert_same_training(frozen, traced)
 
 
@@ -226,7 +226,7 @@ def test_replays_record_and_compile_nothing_new(scene):  # noqa: F811
         tr._resolve()
         log.cut()
     assert tr.train_step.recordings == recordings
-    assert tr.syncs < 2 * len(tr.ds.train) / 5
+    assert tr.loop.syncs < 2 * len(tr.ds.train) / 5
     assert len(log.windows[1]) > 20
     unseen = log.unseen(1)
     assert not unseen, f"{len(unseen)} of {len(log.windows[1])} kernels not launched in the warm-up: {unseen[:5]}"

@@ -17,18 +17,14 @@ Iterations are frozen (:mod:`.train_step`: recorded once with ``dr.freeze``, rep
 checkpoints and refinements. The first iteration and the strategy's refinement iterations run traced
 (:meth:`Trainer._iteration`); ``TrainConfig.freeze = False`` traces every iteration.
 
-A refinement (densification, pruning, opacity reset) of iteration ``k`` runs after that iteration's evaluation, saves
-and checkpoint (:meth:`Trainer._refine`, at the start of iteration ``k + 1``; a checkpoint records it as pending), as
-the reference's ``train.py`` reports and saves before its densification block: the model scored and saved as
-iteration ``k`` is never one with new rows that have not had a single optimization step, and a run whose last
-iteration is a refinement iteration ends without that refinement.
+Iteration ``k``'s refinement runs after its evaluation, saves and checkpoint (:meth:`Trainer._refine`), as in the
+reference's ``train.py``: the model scored and saved as iteration ``k`` never holds rows without an optimization step.
 
 A non-finite loss or parameter stops the run with :class:`TrainingDiverged`; the last good checkpoint stays.
 """
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass
@@ -42,14 +38,14 @@ from ..config import TrainConfig
 from ..data.dataset import Dataset
 from ..drjit_utils import owned_tensor
 from ..evaluate import PROTOCOLS, depth_error, evaluate_views, scores_report, summarize
-from ..io_utils import atomic_path
 from ..model.gaussians import Gaussians
 from ..raster.projection import ViewParams
 from ..raster.rasterize import render
 from .. import report, run_folder
+from . import checkpoint
 from .adam import GaussianAdam
 from .compensation import make_compensation, save_compensation
-from .loop_state import History, ViewSampler
+from .loop_state import History, LoopStats, ViewSampler
 from .strategies import initial_gaussians, make_strategy
 from .losses import inverse_depth_target
 from .schedules import expon_lr, sh_degree_at
@@ -135,8 +131,7 @@ class Trainer:
         self.capacity: int | None = None   # tile-instance capacity of frozen steps (set by the first traced one)
         self._needed = 0                   # the instances it was made for
         self._refine_at: int | None = None  # an iteration whose refinement is still to run (see _refine)
-        self.overflows = 0                 # instance-capacity overflows (each replays frozen iterations)
-        self.syncs = 0                     # device reads of the loop (a densification step's own are not counted)
+        self.loop = LoopStats()            # time split, recordings, overflows, syncs (a refinement's own not counted)
         self._peak = 0                     # most instances a committed frozen step needed since the last traced one
         self._pending: list[_Pending] = []
         self._valid = None                 # the last queued step's ok flag (chained into the next)
@@ -156,47 +151,27 @@ class Trainer:
             if not np.all(np.isfinite(v)):
                 raise TrainingDiverged(f"parameter {k!r} became non-finite at iteration {self.step}; "
                                        f"the last good checkpoint ({self.out / CHECKPOINT}) is kept")
-        arrays = {f"param/{k}": v for k, v in values.items()}
-        for k, v in self.params.export_moments().items():
-            arrays[f"adam/{k}"] = v
         stats, strategy_meta = self.strategy.export_state(self.strategy_state)
-        for k, v in stats.items():
-            arrays[f"densify/{k}"] = v
+        sections = {"param": values, "adam": self.params.export_moments(), "densify": stats}
         if self.exposure is not None:
-            arrays.update({f"exposure/{k}": v for k, v in self.exposure.export().items()})
+            sections["exposure"] = self.exposure.export()
+        self.loop.close(self.elapsed)
         meta = {"step": self.step, "refine_pending": self._refine_at, "elapsed": self.elapsed,
-                "history": self.history.to_dict(),
+                "history": self.history.to_dict(), "loop": self.loop.to_dict(),
                 "sampler": self.sampler.state(), "bg_rng": self.bg_rng.bit_generator.state,
                 "strategy": strategy_meta, "config": self.cfg.to_dict()}
-        arrays["meta"] = np.frombuffer(json.dumps(meta).encode("utf-8"), dtype=np.uint8)
-        path = self.out / CHECKPOINT
-        with atomic_path(path, suffix=".npz") as tmp:
-            with open(tmp, "wb") as f:
-                np.savez(f, **arrays)
+        checkpoint.write(self.out / CHECKPOINT, sections, meta)
 
     def load_checkpoint(self) -> None:
         path = self.out / CHECKPOINT
-        if not path.exists():
-            raise ValueError(f"{path}: no checkpoint to resume from")
+        sections, meta = checkpoint.read(path)
         try:
-            with np.load(path) as z:
-                data = {k: z[k] for k in z.files}
-            meta = json.loads(bytes(data.pop("meta")).decode("utf-8"))
-        except Exception as e:
-            raise ValueError(f"{path}: unreadable checkpoint ({e})") from None
-        def section(prefix):
-            return {k.split("/", 1)[1]: v for k, v in data.items() if k.startswith(prefix + "/")}
-
-        for k, v in data.items():
-            if k.split("/")[0] in ("param", "adam", "exposure") and v.dtype.kind == "f" and not np.all(np.isfinite(v)):
-                raise ValueError(f"{path}: the checkpoint holds non-finite values ({k}); it cannot be resumed "
-                                 "(start a new run: --overwrite)")
-        try:
-            self.params = GaussianAdam(Gaussians.from_numpy(**section("param")), self.cfg.optim, self.extent)
-            self.params.import_moments(section("adam"))
-            self.strategy_state = self.strategy.import_state(section("densify"), meta["strategy"], self.params.n)
+            self.params = GaussianAdam(Gaussians.from_numpy(**sections.get("param", {})), self.cfg.optim, self.extent)
+            self.params.import_moments(sections.get("adam", {}))
+            self.strategy_state = self.strategy.import_state(sections.get("densify", {}), meta["strategy"],
+                                                             self.params.n)
             if self.exposure is not None:
-                self.exposure.restore(section("exposure"))
+                self.exposure.restore(sections.get("exposure", {}))
         except (KeyError, TypeError, ValueError) as e:
             raise ValueError(f"{path}: checkpoint does not fit this run ({e})") from None
         self.step = int(meta["step"])
@@ -208,6 +183,7 @@ class Trainer:
                              f"{self.cfg.optim.iterations} iterations asked for")
         self.elapsed = float(meta["elapsed"])
         self.history = History(**meta["history"])
+        self.loop = LoopStats.from_dict(meta.get("loop"))
         self.sampler.restore(meta["sampler"])
         self.bg_rng.bit_generator.state = meta["bg_rng"]
 
@@ -257,15 +233,14 @@ class Trainer:
         # (a view where nothing is visible gives a loss that does not depend on the parameters)
         dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
         value = float(loss[0])
-        self.syncs += 2          # (this read, and the binning's read of its instance count)
+        self.loop.syncs += 2     # (this read, and the binning's read of its instance count)
         if not math.isfinite(value):
             raise self._diverged(value, step, idx)
         if self.strategy.updates_state_at(step):
             self.strategy.update_state(self.strategy_state, out)
         refines = self.strategy.refines_at(step)
         if refines and not o.step_on_refine:
-            # (the reference's densification rebuilds the parameters, which then have no gradient, so its Adam
-            # skips this iteration: we do the same; gsplat takes the step, then refines: optim.step_on_refine)
+            # (the reference's Adam skips it: its rebuilt parameters have no gradient; gsplat's steps: step_on_refine)
             self.params.clear_grads()
         else:
             self.params.step()
@@ -342,15 +317,17 @@ class Trainer:
         pending, self._pending = self._pending, []
         if not pending:
             return True
-        dr.sync_thread()
-        self.syncs += 1
-        for p in pending:
+        with self.loop.timed("waiting"):
+            dr.sync_thread()
+        self.loop.syncs += 1
+        for i, p in enumerate(pending):
             ok, loss, instances = bool(p.ok[0]), float(p.loss[0]), int(p.instances[0])
             if not ok:
                 self._valid = None
                 if instances > self.capacity:
                     self.capacity = capacity_for(1.25 * instances)
-                    self.overflows += 1
+                    self.loop.overflows += 1
+                    self.loop.replayed += len(pending) - i
                     self.sampler.restore(p.host[0])
                     self.bg_rng.bit_generator.state = p.host[1]
                     self.step = p.step - 1
@@ -388,17 +365,26 @@ class Trainer:
         self._t0 = time.perf_counter()
         try:
             if self._refine_at is not None:      # (a traced iteration before it: nothing is queued)
-                self._refine()
+                with self.loop.timed("refinement"):
+                    self._refine()
+                self.loop.refinements += 1
             if self._traced_at(step):
                 if not self._resolve():
                     return
-                loss, instances = self._iteration(step)
+                with self.loop.timed("traced"):
+                    loss, instances = self._iteration(step)
+                self.loop.traced += 1
                 self.step = step
                 self._commit(step, loss)
                 if self.cfg.freeze:
                     self._set_capacity_after_traced(instances)
             else:
-                self._dispatch(step)
+                recordings = self.train_step.recordings
+                with self.loop.timed("frozen") as part:
+                    self._dispatch(step)
+                    new = self.train_step.recordings - recordings
+                    part[0] = "recording" if new else "frozen"
+                self.loop.recordings += new
                 if self._host_work_at(step) or len(self._pending) >= SYNC_EVERY:
                     self._resolve()
         finally:
@@ -438,8 +424,10 @@ class Trainer:
                     self._stop()
                 if self.step < total:
                     self.advance()
-                else:
+                else:                            # (the last queued iterations: training time too)
+                    t0 = time.perf_counter()
                     self._resolve()
+                    self.elapsed += time.perf_counter() - t0
                 if monitor is not None:
                     monitor(self)
                 step = self.step
@@ -447,14 +435,16 @@ class Trainer:
                     continue
                 done = step                      # (a rewind never goes back past it: it was synchronized)
                 if cfg.eval_every and step % cfg.eval_every == 0 or step == total:
-                    self._last_psnr = self._test_psnr()
+                    with self.loop.timed("evaluation"):
+                        self._last_psnr = self._test_psnr()
                     if self._last_psnr is not None:
                         self.history.eval_iteration.append(step)
                         self.history.test_psnr.append(self._last_psnr)
-                if step in cfg.save_iterations and step != total:
-                    self.gaussians.save_ply(self.out / run_folder.saved_model(step))
-                if step % cfg.checkpoint_every == 0 or step == total:
-                    self.save_checkpoint()
+                with self.loop.timed("saving"):
+                    if step in cfg.save_iterations and step != total:
+                        self.gaussians.save_ply(self.out / run_folder.saved_model(step))
+                    if step % cfg.checkpoint_every == 0 or step == total:
+                        self.save_checkpoint()
         finally:
             self._bar.close()
             self._bar = None
@@ -484,6 +474,7 @@ class Trainer:
                                       color_space=self.ds.color_space)
         self._stop_if_asked()
         report.write_view_outputs(self.out, scores, self.ds.color_space)
+        self.loop.close(self.elapsed)
         metrics = {
             "split": "test" if self.ds.test else "train (no test views)",
             "protocol": PROTOCOLS["full"],
@@ -492,6 +483,7 @@ class Trainer:
             "iterations": self.step,
             "training_seconds": round(self.elapsed, 3),
             "iterations_per_second": round(self.step / self.elapsed, 3) if self.elapsed > 0 else None,
+            "loop": self.loop.to_dict(),
         }
         if self.exposure is not None:            # (the transforms belong to the training images: beside the model)
             half, _ = evaluate_views(g, views, self.background, cfg=self.cfg.raster, color_space=self.ds.color_space,
