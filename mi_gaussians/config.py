@@ -13,6 +13,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+from .setting_values import SettingError, json_value, parse_value, shown
+
 #: The densification strategies ``TrainConfig.strategy`` may name, each with the section of :class:`TrainConfig` it
 #: reads (``mi_gaussians.optim.strategies`` gives each its class; a test checks that both list the same names).
 STRATEGIES = {"default": "densify", "mcmc": "mcmc"}
@@ -262,7 +264,7 @@ class TrainConfig:
             if name not in fields:
                 raise SettingError(key, f"no such field (fields{' of ' + path[0] if len(path) == 2 else ''}: "
                                         f"{', '.join(fields)})")
-            parsed = _parse_value(typing.get_type_hints(type(owner))[name], value.strip(), key)
+            parsed = parse_value(typing.get_type_hints(type(owner))[name], value.strip(), key)
             _check_value(key, parsed)
             owner = dataclasses.replace(owner, **{name: parsed})
             cfg = owner if len(path) == 1 else dataclasses.replace(cfg, **{path[0]: owner})
@@ -307,14 +309,6 @@ class TrainConfig:
                 raise SettingError(key, f"the {section} section configures --strategy {other}, not the "
                                         f"{self.strategy} strategy of this run")
         return self
-
-
-class SettingError(ValueError):
-    """A setting with a wrong name, type or value: ``key`` is its ``section.field`` name."""
-
-    def __init__(self, key: str, problem: str):
-        self.key, self.problem = key, problem
-        super().__init__(f"setting {key!r}: {problem}")
 
 
 # ------------------------------------------------------------------------------------------------------ the rules
@@ -415,7 +409,7 @@ def _from_json(kind, values, prefix: str):
 
     section = prefix.rstrip(".") or "the training settings"
     if not isinstance(values, dict):
-        raise SettingError(section, f"expected an object of settings, got {_shown(values)}")
+        raise SettingError(section, f"expected an object of settings, got {shown(values)}")
     names = {f.name: f for f in dataclasses.fields(kind)}
     hints = typing.get_type_hints(kind)
     retired = TrainConfig.RETIRED.get(kind.__name__, ())
@@ -429,84 +423,5 @@ def _from_json(kind, values, prefix: str):
         if dataclasses.is_dataclass(default):
             kw[k] = _from_json(type(default), v, f"{prefix}{k}.")
         else:
-            kw[k] = _json_value(hints[k], v, prefix + k)
+            kw[k] = json_value(hints[k], v, prefix + k)
     return kind(**kw)
-
-
-def _json_value(kind, v, key: str):
-    """A JSON value ``v`` as the type ``kind`` (bool, int, float, str, tuples of those, optionally ``| None``)."""
-    import math
-    import types
-    import typing
-
-    args = typing.get_args(kind)
-    if isinstance(kind, types.UnionType) or typing.get_origin(kind) is typing.Union:
-        if v is None and type(None) in args:
-            return None
-        (kind,) = [a for a in args if a is not type(None)]
-        args = typing.get_args(kind)
-    if typing.get_origin(kind) is tuple:
-        if not isinstance(v, (list, tuple)):
-            raise SettingError(key, f"expected a list, got {_shown(v)}")
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_json_value(args[0], x, key) for x in v)
-        if len(v) != len(args):
-            raise SettingError(key, f"expected a list of {len(args)} values, got {_shown(v)}")
-        return tuple(_json_value(a, x, key) for a, x in zip(args, v))
-    if kind is bool and isinstance(v, bool):
-        return v
-    if kind is int and isinstance(v, int) and not isinstance(v, bool):
-        return v
-    if kind is float and isinstance(v, (int, float)) and not isinstance(v, bool):
-        if not math.isfinite(v):
-            raise SettingError(key, f"expected a finite number, got {v}")
-        return float(v)
-    if kind is str and isinstance(v, str):
-        return v
-    what = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(kind, str(kind))
-    raise SettingError(key, f"expected {what}, got {_shown(v)}")
-
-
-def _shown(v) -> str:
-    import json
-
-    text = json.dumps(v) if isinstance(v, (dict, list, str, int, float, bool, type(None))) else repr(v)
-    return text if len(text) <= 40 else text[:37] + "..."
-
-
-def _parse_value(kind, text: str, key: str):
-    """``text`` as a value of the type ``kind`` (bool, int, float, str, tuples of those, optionally ``| None``)."""
-    import types
-    import typing
-
-    args = typing.get_args(kind)
-    if isinstance(kind, types.UnionType) or typing.get_origin(kind) is typing.Union:
-        if text.lower() == "none" and type(None) in args:
-            return None
-        (kind,) = [a for a in args if a is not type(None)]
-        args = typing.get_args(kind)
-    if typing.get_origin(kind) is tuple:
-        items = [t for t in text.replace(",", " ").split() if t]
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_parse_value(args[0], t, key) for t in items)
-        if len(items) != len(args):
-            raise SettingError(key, f"expected {len(args)} comma-separated values, got {text!r}")
-        return tuple(_parse_value(a, t, key) for a, t in zip(args, items))
-    try:
-        if kind is bool:
-            low = text.lower()
-            if low not in ("true", "false", "1", "0", "yes", "no"):
-                raise ValueError
-            return low in ("true", "1", "yes")
-        if kind is int:
-            return int(text.replace("_", ""))
-        if kind is float:
-            value = float(text)
-            if value != value or value in (float("inf"), float("-inf")):
-                raise ValueError
-            return value
-        if kind is str:
-            return text
-    except ValueError:
-        raise SettingError(key, f"{text!r} is not a valid {kind.__name__}") from None
-    raise SettingError(key, f"values of type {kind} cannot be set from the command line")

@@ -14,7 +14,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from .config import SettingError, TrainConfig
+from .config import TrainConfig
+from .setting_values import SettingError
 
 CONFIG = "config.json"
 CHECKPOINTS = "checkpoints"

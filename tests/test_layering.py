@@ -2,8 +2,9 @@
 
 The layers, bottom to top (a module may import from its own layer or a lower one, never a higher one)::
 
-    0    base          config, io_utils, _libllvm, errors, drjit_utils, conventions, imwrite, image_ops, run_folder (the
-                       names and the lock of a run's output folder: the trainer, the report and the CLI share them)
+    0    base          config, setting_values, io_utils, _libllvm, errors, drjit_utils, conventions, imwrite,
+                       image_ops, run_folder (the names and the lock of a run's output folder: the trainer, the
+                       report and the CLI share them)
     0.5  metrics       metrics (scores images; sits on the base only)
     1    data          mi_gaussians.data.*
     2    model         mi_gaussians.model.*
@@ -33,6 +34,7 @@ PACKAGE = "mi_gaussians"
 LAYERS: dict[str, float] = {
     # 0: base
     "mi_gaussians.config": 0,
+    "mi_gaussians.setting_values": 0,
     "mi_gaussians.io_utils": 0,
     "mi_gaussians._libllvm": 0,
     "mi_gaussians.drjit_utils": 0,
