@@ -236,6 +236,10 @@ class TrainConfig:
         """The configuration a run saved (``config.json``'s ``"train"``, JSON values): every field's type and range
         checked (:class:`SettingError` naming the key, e.g. ``optim.iterations``); missing fields take their
         defaults, unknown ones are refused."""
+        dens = d.get("densify") if isinstance(d, dict) else None
+        if isinstance(dens, dict) and "opacity_reset_interval" in dens and "prune_large_after" not in dens:
+            # (a record from before prune_large_after: its large-Gaussian prunes began after the first reset)
+            d = {**d, "densify": {**dens, "prune_large_after": dens["opacity_reset_interval"]}}
         return _from_json(cls, d, "").validate()
 
     def with_settings(self, assignments) -> "TrainConfig":

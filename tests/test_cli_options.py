@@ -176,8 +176,14 @@ def test_a_record_round_trips_and_older_records_still_load(tmp_path):
     saved = json.loads((tmp_path / "config.json").read_text())
     del saved["train"]["mcmc"]                            # (a record of a version without MCMC: defaults)
     saved["train"]["raster"]["tile_size"] = 16            # (a retired field: ignored)
+    # (a record from before prune_large_after and max_screen_fraction: its large-Gaussian prunes began after the
+    # first opacity reset; its pixel screen size is retired)
+    del saved["train"]["densify"]["prune_large_after"], saved["train"]["densify"]["max_screen_fraction"]
+    saved["train"]["densify"].update(opacity_reset_interval=1000, max_screen_size=20.0)
     (tmp_path / "config.json").write_text(json.dumps(saved))
-    assert run_folder.RunRecord.read(tmp_path, "missing").train.mcmc == config.MCMCConfig()
+    old = run_folder.RunRecord.read(tmp_path, "missing").train
+    assert old.mcmc == config.MCMCConfig()
+    assert old.densify.prune_large_after == 1000 and old.densify.max_screen_fraction == 0
 
 
 # ---------------------------------------------------------------------------------------------- private names

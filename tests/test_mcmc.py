@@ -138,9 +138,10 @@ def test_growth_follows_the_rate_and_never_exceeds_the_cap():
     for step in range(1, 9):
         n = p.n
         v0, m0 = _snapshot(p)
+        will_change = strategy.replaces_parameters_at(p, step)
         info = strategy.step_post_backward(p, state, step, None)
         assert info.n == p.n == min(cap, int(1.05 * n)) and info.added == p.n - n and info.relocated == 0
-        assert info.changed == (info.added > 0)
+        assert info.changed == (info.added > 0) == will_change   # (the trainer steps Adam when it changes nothing)
         sizes.append(p.n)
         v1, m1 = _snapshot(p)
         if info.added:
@@ -150,6 +151,10 @@ def test_growth_follows_the_rate_and_never_exceeds_the_cap():
             for key in v1:
                 assert all(np.all(m[n:] == 0) and np.all(m[sources] == 0) for m in m1[key]), key
     assert sizes == [200, 210, 220, 231, 242, 254, 260, 260, 260] and state.draws == 8
+    logit = np.array(p["opacities"].array, np.float32)
+    logit[0] = -20.0                                      # (one dead Gaussian at the cap: it will be relocated)
+    p.replace("opacities", mi.TensorXf(mi.Float(logit)))
+    assert strategy.replaces_parameters_at(p, 9)
 
 
 def test_budget_is_never_exceeded_in_training(scene, tmp_path):  # noqa: F811

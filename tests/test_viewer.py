@@ -137,7 +137,7 @@ def test_browser_shows_the_model_and_follows_the_mouse(tmp_path):
                             cwd=tempfile.gettempdir())
     import threading
 
-    watchdog = threading.Timer(120, proc.kill)         # (a hung viewer must not hang the suite)
+    watchdog = threading.Timer(240, proc.kill)         # (a hung viewer must not hang the suite)
     watchdog.start()
     try:
         url = None

@@ -183,6 +183,15 @@ class MCMCStrategy(Strategy):
             params.clear_grads()
         return info
 
+    def replaces_parameters_at(self, params: GaussianAdam, step: int) -> bool:
+        """A dead Gaussian to relocate (beside a live one) or room to grow: else the 3DGS-MCMC reference changes
+        nothing and takes the iteration's Adam step."""
+        dead = self._opacities(params) <= self.cfg.min_opacity
+        return bool(dead.any() and not dead.all()) or self._growth(params.n) > 0
+
+    def _growth(self, n: int) -> int:
+        return max(0, min(self.max_gaussians, int((1.0 + self.cfg.growth) * n)) - n)
+
     def _opacities(self, params: GaussianAdam) -> np.ndarray:
         return sigmoid_np(np.array(params["opacities"].array, np.float64))
 
@@ -210,7 +219,7 @@ class MCMCStrategy(Strategy):
 
     def _add(self, params: GaussianAdam, rng: np.random.Generator) -> int:
         n = params.n
-        n_new = max(0, min(self.max_gaussians, int((1.0 + self.cfg.growth) * n)) - n)
+        n_new = self._growth(n)
         if n_new == 0:
             return 0
         o = self._opacities(params)

@@ -117,6 +117,11 @@ class Strategy:
         gradient. May synchronize."""
         raise NotImplementedError
 
+    def replaces_parameters_at(self, params, step: int) -> bool:
+        """Whether :meth:`refine` at its iteration ``step`` will change rows or values, so that the iteration's Adam
+        step is left out (the reference's order; ``optim.step_on_refine`` takes it anyway). The default: it will."""
+        return True
+
     def refines_at(self, step: int) -> bool:
         """True when :meth:`refine` may change rows or values at iteration ``step`` (host work)."""
         raise NotImplementedError

@@ -135,7 +135,7 @@ class Trainer:
         self._peak = 0                     # most instances a committed frozen step needed since the last traced one
         self._pending: list[_Pending] = []
         self._valid = None                 # the last queued step's ok flag (chained into the next)
-        self._views: list | None = None    # ViewParams per training view, built on first use
+        self._views: list = [None] * len(ds.train)   # ViewParams per training view, built on first use
         self._bar, self._ema, self._last_psnr = None, None, None
         self._t0 = time.perf_counter()
 
@@ -239,7 +239,7 @@ class Trainer:
         if self.strategy.updates_state_at(step):
             self.strategy.update_state(self.strategy_state, out)
         refines = self.strategy.refines_at(step)
-        if refines and not o.step_on_refine:
+        if refines and not o.step_on_refine and self.strategy.replaces_parameters_at(self.params, step):
             # (the reference's Adam skips it: its rebuilt parameters have no gradient; gsplat's steps: step_on_refine)
             self.params.clear_grads()
         else:
@@ -280,8 +280,6 @@ class Trainer:
         self._peak = 0
 
     def _view_params(self, idx: int) -> ViewParams:
-        if self._views is None:
-            self._views = [None] * len(self.ds.train)
         if self._views[idx] is None:
             self._views[idx] = ViewParams.from_camera(self.ds.train[idx].camera)
         return self._views[idx]
@@ -420,14 +418,11 @@ class Trainer:
         done = self.step                         # the last iteration whose evaluation / saving / checkpoint ran
         try:
             while self.step < total or self._pending:
-                if self.stop_signal is not None:
-                    self._stop()
+                self._stop_if_asked()
                 if self.step < total:
                     self.advance()
-                else:                            # (the last queued iterations: training time too)
-                    t0 = time.perf_counter()
-                    self._resolve()
-                    self.elapsed += time.perf_counter() - t0
+                else:
+                    self._drain()
                 if monitor is not None:
                     monitor(self)
                 step = self.step
@@ -450,18 +445,20 @@ class Trainer:
             self._bar = None
         return self.finish()
 
-    def _stop(self) -> None:
-        """Commit the queued iterations, write a checkpoint and raise :class:`TrainingStopped`."""
+    def _drain(self) -> None:
+        """Commit every queued iteration (training time; an overflow rewinds and empties the queue)."""
+        t0 = time.perf_counter()
         while self._pending:
             self._resolve()
-        self.save_checkpoint()
-        raise TrainingStopped(self.stop_signal, self.step)
+        self.elapsed += time.perf_counter() - t0
 
     def _stop_if_asked(self) -> None:
-        """While the final outputs are written: a stop asked for (:attr:`stop_signal`) raises
-        :class:`TrainingStopped` at the last iteration, whose checkpoint is written (a resumed run writes them)."""
+        """When a stop was asked for (:attr:`stop_signal`): commit the queued iterations, write a checkpoint and raise
+        :class:`TrainingStopped` (while the final outputs are written: at the last iteration; a resume writes them)."""
         if self.stop_signal is not None:
-            self._stop()
+            self._drain()
+            self.save_checkpoint()
+            raise TrainingStopped(self.stop_signal, self.step)
 
     def finish(self) -> dict:
         """Final outputs: PLY, test renders and comparisons, metrics.json, curves. A stop asked for while they are
