@@ -250,3 +250,18 @@ def test_antialiased_run_is_recorded_and_rendered_that_way(tmp_path):
     assert run("optimize", data, "-o", plain, "--iterations", 5, "--quiet", "--random-points", 100).returncode == 0
     assert_one_line_error(run("optimize", data, "-o", plain, "--resume", "--antialiased"),
                           "--antialiased gives raster.antialiased = True, the run has False")
+
+
+def test_the_progress_bar_ends_on_the_last_evaluation(tmp_path):
+    """The bar's PSNR at the end is the final evaluation's, the one the JSON printed after it reports (the bar used to
+    end on the evaluation before the last)."""
+    import re
+
+    data = ROOT / "tests" / "data" / "tiny_blender"
+    res = run("optimize", data, "-o", tmp_path / "run", "--iterations", 60, "--eval-every", 20, "--random-points", 400)
+    assert res.returncode == 0, res.stderr
+    shown = re.findall(r"PSNR=([0-9.]+)", res.stderr)
+    final = json.loads(res.stdout[res.stdout.index("{"):])["psnr"]
+    history = json.loads((tmp_path / "run" / "history.json").read_text())["test_psnr"]
+    assert len(history) == 3 and round(history[-2], 2) != round(final, 2)       # (the last two differ)
+    assert shown and shown[-1] == f"{final:.2f}", (shown[-3:], final)

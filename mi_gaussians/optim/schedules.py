@@ -39,6 +39,19 @@ def expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int, delay_s
     return delay_rate * math.exp(math.log(lr_init) * (1.0 - t) + math.log(lr_final) * t)
 
 
+def position_lr(step: int, o, extent: float) -> float:
+    """The position learning rate at ``step`` of a run with the settings ``o`` (an ``OptimConfig``): the reference's
+    schedule, scaled by the scene extent."""
+    return extent * expon_lr(step, o.position_lr_init, o.position_lr_final, o.position_lr_max_steps,
+                             delay_steps=o.position_lr_delay_steps, delay_mult=o.position_lr_delay_mult)
+
+
+def depth_weight(step: int, o) -> float:
+    """The depth-loss weight at ``step`` of a run with the settings ``o``: decaying over the run's schedule
+    (``position_lr_max_steps``, which a resume with more iterations keeps, as it keeps every schedule)."""
+    return expon_lr(step, o.depth_weight, o.depth_weight_final, o.position_lr_max_steps)
+
+
 def warmup_expon_lr(step: int, lr: float, warmup_steps: int, start_factor: float, final_factor: float,
                     max_steps: int) -> float:
     """gsplat's bilateral-grid schedule at the 1-based iteration ``step``: ``ChainedScheduler([LinearLR(

@@ -48,7 +48,7 @@ from .compensation import make_compensation, save_compensation
 from .loop_state import History, LoopStats, ViewSampler
 from .strategies import initial_gaussians, make_strategy
 from .losses import inverse_depth_target
-from .schedules import expon_lr, sh_degree_at
+from .schedules import depth_weight, position_lr, sh_degree_at
 from .train_step import StepInputs, TrainStep, capacity_for, composite_target, training_loss
 
 CHECKPOINT = Path(run_folder.CHECKPOINT)
@@ -193,17 +193,6 @@ class Trainer:
         return composite_target(self.targets[idx], transparency, bg, self.background)
 
     # ------------------------------------------------------------------ one iteration
-    def _means_lr(self, step: int) -> float:
-        o = self.cfg.optim
-        return self.extent * expon_lr(step, o.position_lr_init, o.position_lr_final, o.position_lr_max_steps,
-                                      delay_steps=o.position_lr_delay_steps, delay_mult=o.position_lr_delay_mult)
-
-    def _depth_weight(self, step: int) -> float:
-        """The depth-loss weight at ``step``: decaying over the run's schedule (``position_lr_max_steps``, which a
-        resume with more iterations keeps, as it keeps every schedule)."""
-        o = self.cfg.optim
-        return expon_lr(step, o.depth_weight, o.depth_weight_final, o.position_lr_max_steps)
-
     def _draw(self) -> tuple[int, tuple]:
         """The training view and the background colour of the next iteration (advances both random streams)."""
         idx = self.sampler.next()
@@ -217,7 +206,7 @@ class Trainer:
         cfg = self.cfg
         o = cfg.optim
         # (a Dr.Jit value, as in the frozen step, so both paths leave the optimizer state of the same type)
-        self.params.set_learning_rate("means", dr.opaque(mi.Float, self._means_lr(step)))
+        self.params.set_learning_rate("means", dr.opaque(mi.Float, position_lr(step, o, self.extent)))
         g = self.params.gaussians
         degree = sh_degree_at(step, g.sh_degree, o.sh_increase_interval)
         idx, bg = self._draw()
@@ -228,7 +217,7 @@ class Trainer:
         depth = self.depth_targets is not None
         loss = training_loss(out, self.target(idx, bg), o.lambda_dssim, self.strategy, self.params,
                              self.depth_targets[idx] if depth else None,
-                             dr.opaque(mi.Float, self._depth_weight(step)) if depth else None, self.exposure,
+                             dr.opaque(mi.Float, depth_weight(step, o)) if depth else None, self.exposure,
                              dr.opaque(mi.UInt32, idx), o.ssim_padding)
         # (a view where nothing is visible gives a loss that does not depend on the parameters)
         dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
@@ -245,7 +234,7 @@ class Trainer:
         else:
             self.params.step()
         self.strategy.step_post_update(self.params, self.strategy_state, dr.opaque(mi.UInt32, step),
-                                       dr.opaque(mi.Float, self._means_lr(step)))
+                                       dr.opaque(mi.Float, position_lr(step, o, self.extent)))
         if self.exposure is not None:          # (every iteration, as the reference's exposure optimizer)
             self.exposure.set_learning_rate(dr.opaque(mi.Float, self.exposure.learning_rate(step)))
             self.exposure.step()
@@ -292,10 +281,11 @@ class Trainer:
         inputs = StepInputs(target=self.targets[idx],
                             transparency=None if self.transparency is None else self.transparency[idx],
                             view=self._view_params(idx), background=tuple(dr.opaque(mi.Float, b) for b in bg),
-                            means_lr=dr.opaque(mi.Float, self._means_lr(step)), step=dr.opaque(mi.UInt32, step),
+                            means_lr=dr.opaque(mi.Float, position_lr(step, cfg.optim, self.extent)),
+                            step=dr.opaque(mi.UInt32, step),
                             depth_target=None if self.depth_targets is None else self.depth_targets[idx],
                             depth_weight=None if self.depth_targets is None
-                            else dr.opaque(mi.Float, self._depth_weight(step)),
+                            else dr.opaque(mi.Float, depth_weight(step, cfg.optim)),
                             view_index=None if self.exposure is None else dr.opaque(mi.UInt32, idx),
                             exposure_lr=None if self.exposure is None
                             else dr.opaque(mi.Float, self.exposure.learning_rate(step)))
@@ -345,10 +335,14 @@ class Trainer:
         if self._bar is not None:
             self._bar.update(1)
             if step % 10 == 0 or step == self.cfg.optim.iterations:
-                post = {"loss": f"{self._ema:.4f}", "N": f"{self.params.n:,}"}
-                if self._last_psnr is not None:
-                    post["PSNR"] = f"{self._last_psnr:.2f}"
-                self._bar.set_postfix(post, refresh=False)
+                self._show_progress(refresh=False)
+
+    def _show_progress(self, refresh: bool = True) -> None:
+        """The progress bar's loss, number of Gaussians and latest test PSNR."""
+        post = {"loss": f"{self._ema:.4f}", "N": f"{self.params.n:,}"}
+        if self._last_psnr is not None:
+            post["PSNR"] = f"{self._last_psnr:.2f}"
+        self._bar.set_postfix(post, refresh=refresh)
 
     def _host_work_at(self, step: int) -> bool:
         cfg = self.cfg
@@ -435,6 +429,8 @@ class Trainer:
                     if self._last_psnr is not None:
                         self.history.eval_iteration.append(step)
                         self.history.test_psnr.append(self._last_psnr)
+                        if self._ema is not None:        # (the bar ends on the last evaluation)
+                            self._show_progress()
                 with self.loop.timed("saving"):
                     if step in cfg.save_iterations and step != total:
                         self.gaussians.save_ply(self.out / run_folder.saved_model(step))
