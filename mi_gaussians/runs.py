@@ -162,6 +162,8 @@ def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cac
             manifest.claim([POINTS])                  # (a triangulation's cache, kept by --overwrite)
         ds = initial_points(ds, cfg, points_root(out, cache), log)
     trainer = Trainer(ds, cfg, out, progress=progress)     # (decodes the training images)
+    if record is None and log is not None:
+        _note_if_never_refined(trainer, cfg, log)
     watcher = watch(trainer, ds) if watch is not None else None
     if stop is not None:
         stop.trainer = trainer                        # (from now on a signal lets the iteration finish)
@@ -187,6 +189,19 @@ def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cac
             watcher.close()
         raise
     return RunResult(metrics, trainer, trainer.resumed_from, watcher)
+
+
+def _note_if_never_refined(trainer, cfg: TrainConfig, log: Callable[[str], None]) -> None:
+    """One line when no refinement of the strategy falls within the run (e.g. a run shorter than its start): the run
+    adds no Gaussians."""
+    n = cfg.optim.iterations
+    if not any(trainer.strategy.refines_at(s) for s in range(1, n)):
+        fields = (("mcmc", ("refine_start_iter", "refine_stop_iter", "refine_every")) if cfg.strategy == "mcmc" else
+                  ("densify", ("densify_from_iter", "densify_until_iter", "densification_interval")))
+        section = getattr(cfg, fields[0])
+        said = ", ".join(f"{fields[0]}.{f} = {getattr(section, f):,}" for f in fields[1])
+        log(f"note: no densification falls within the {n:,} iterations ({said}): the run trains the initial "
+            f"{trainer.params.n:,} Gaussians and adds none")
 
 
 def check_resumed_dataset(src: Path, out: Path, record: RunRecord, fingerprint: str | None,

@@ -39,7 +39,7 @@ def checkpoint_step(out: Path) -> int:
 
 
 #: What a run says before training as it goes (where its initial points come from), not part of an error.
-PROGRESS_LINES = ("initial points: ", "triangulation [")
+PROGRESS_LINES = ("initial points: ", "triangulation [", "note: no densification")     # (and notes)
 
 
 def message_lines(stderr: str) -> list[str]:
@@ -265,3 +265,18 @@ def test_the_progress_bar_ends_on_the_last_evaluation(tmp_path):
     history = json.loads((tmp_path / "run" / "history.json").read_text())["test_psnr"]
     assert len(history) == 3 and round(history[-2], 2) != round(final, 2)       # (the last two differ)
     assert shown and shown[-1] == f"{final:.2f}", (shown[-3:], final)
+
+
+def test_a_run_shorter_than_its_densification_start_says_so(tmp_path):
+    """A run that ends before its first densification adds no Gaussians: one line says so, and not otherwise."""
+    data = ROOT / "tests" / "data" / "tiny_blender"
+    short = run("optimize", data, "-o", tmp_path / "short", "--iterations", 30, "--quiet", "--random-points", 400,
+                "--eval-every", 0)
+    assert short.returncode == 0, short.stderr
+    assert "no densification falls within the 30 iterations (densify.densify_from_iter = " in short.stderr, short.stderr
+    assert "the run trains the initial 400 Gaussians and adds none" in short.stderr
+    densified = run("optimize", data, "-o", tmp_path / "densified", "--iterations", 30, "--quiet", "--random-points",
+                    400, "--eval-every", 0, "--set", "densify.densify_from_iter=10", "--set",
+                    "densify.densification_interval=5", "--set", "densify.densify_until_iter=25")
+    assert densified.returncode == 0, densified.stderr
+    assert "densification" not in densified.stderr, densified.stderr
