@@ -122,6 +122,13 @@ def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q) * (1 if q[0] >= 0 else -1)
 
 
+def browser_url(host: str, port: int) -> str:
+    """The address a browser on this machine opens for a server bound to ``host``: the loopback address of a
+    wildcard (``0.0.0.0``, ``::``), an IPv6 address in brackets."""
+    host = {"": "127.0.0.1", "0.0.0.0": "127.0.0.1", "::": "::1"}.get(host, host)
+    return f"http://{f'[{host}]' if ':' in host else host}:{port}"
+
+
 def image_size(aspect: float, longest: int) -> tuple[int, int]:
     """(width, height) of an image of ``aspect`` = width / height whose longest side is ``longest`` pixels."""
     aspect = float(aspect) if aspect and math.isfinite(aspect) and aspect > 0 else 1.0
@@ -281,7 +288,7 @@ class Viewer:
     @property
     def url(self) -> str:
         host = self.server.get_host() if self.server is not None else self.cfg.host
-        return f"http://{'127.0.0.1' if host in ('0.0.0.0', '') else host}:{self.server.get_port()}"
+        return browser_url(host, self.server.get_port())
 
     def stop(self) -> None:
         if self.server is not None:

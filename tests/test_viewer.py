@@ -21,8 +21,8 @@ import pytest
 from mi_gaussians.data.camera import Camera
 from mi_gaussians.model.gaussians import Gaussians
 from test_cli import run
-from mi_gaussians.viewer import (RENDER_MODES, StaticModel, TrainingView, Viewer, ViewerConfig, camera_from_pose,
-                                 image_size, pose_of_camera, render_image)
+from mi_gaussians.viewer import (RENDER_MODES, StaticModel, TrainingView, Viewer, ViewerConfig, browser_url,
+                                 camera_from_pose, image_size, pose_of_camera, render_image)
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "scenes" / "tiny_gaussians.ply"
@@ -50,6 +50,14 @@ def test_camera_round_trip():
         assert back.fy == pytest.approx(500.0) and back.fx == pytest.approx(500.0)
     assert image_size(4 / 3, 1024) == (1024, 768) and image_size(0.5, 256) == (128, 256)
     assert image_size(float("nan"), 100) == (100, 100)
+
+
+def test_the_printed_address_is_one_a_browser_opens():
+    """A wildcard host becomes the loopback address (IPv4 or IPv6), an IPv6 address goes in brackets."""
+    assert browser_url("0.0.0.0", 8080) == browser_url("", 8080) == "http://127.0.0.1:8080"
+    assert browser_url("::", 8080) == "http://[::1]:8080"
+    assert browser_url("fe80::1", 81) == "http://[fe80::1]:81"
+    assert browser_url("127.0.0.1", 1) == "http://127.0.0.1:1" and browser_url("node7", 2) == "http://node7:2"
 
 
 def test_frames_of_every_mode():
