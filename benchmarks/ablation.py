@@ -76,6 +76,11 @@ def run(name: str, setup: str, iterations: int, schedule: int, out_root: Path) -
             "gaussians": m["gaussians"], "minutes": m["training_seconds"] / 60, "curve": curve}
 
 
+def curve_text(curve: dict, at: list[int]) -> str:
+    """A run's held-out PSNR at the iterations ``at`` ("-" where its curve has no evaluation)."""
+    return " / ".join(f"{curve[c]:.2f}" if c in curve else "-" for c in at)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("datasets", nargs="+", choices=sorted(DATASETS))
@@ -93,7 +98,7 @@ def main(argv=None) -> int:
     print(f"| dataset | setup | options | PSNR {at} | PSNR | SSIM | Gaussians | minutes |")
     print("|---|---|---|---|---:|---:|---:|---:|")
     for r in rows:
-        curve = " / ".join(f"{r['curve'][c]:.2f}" if c in r["curve"] else "-" for c in args.curve)
+        curve = curve_text(r["curve"], args.curve)
         opts = " ".join(f"`{s}`" for s in CHANGES.get(r["setup"], [])) or "-"
         print(f"| {r['dataset']} | {r['setup']} | {opts} | {curve} | {r['psnr']:.2f} | {r['ssim']:.4f} "
               f"| {r['gaussians']:,} | {r['minutes']:.1f} |")

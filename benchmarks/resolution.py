@@ -22,7 +22,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from ablation import DATA, DATASETS  # noqa: E402
+from ablation import DATA, DATASETS, curve_text  # noqa: E402
 from cli_run import train  # noqa: E402
 
 
@@ -81,7 +81,7 @@ def main(argv=None) -> int:
     print(f"| scene | size | code | PSNR {at} | PSNR | SSIM | Gaussians | minutes |")
     print("|---|---|---|---|---:|---:|---:|---:|")
     for r in rows:
-        curve = " / ".join(f"{r['curve'][c]:.2f}" if c in r["curve"] else "-" for c in args.curve)
+        curve = curve_text(r["curve"], args.curve)
         size = f"{r['size']} px" if source(r["name"])[2] else f"-r {r['size']}"
         print(f"| {r['name']} | {size} | {r['tag']} | {curve} | {r['psnr']:.2f} | {r['ssim']:.4f} "
               f"| {r['gaussians']:,} | {r['minutes']:.1f} |")
