@@ -294,6 +294,37 @@ def test_colmap_prefers_images_r_folder(tmp_path):
         load_dataset(root, resolution=2)
 
 
+def test_ngp_reads_images_r_folder(tmp_path, caplog):
+    """ngp (nerfstudio's downscaled folders): at -r 2 an images_2/ folder beside transforms.json is read in place of
+    resampling images/, its files named like the frames' images; the view is the same camera (undistorted as
+    before) and the image the undistortion of the reduced file. Without images/ the frames stay (only images_2 is
+    needed); a frame missing in images_2 is skipped as a missing image is."""
+    root = copy_fixture("tiny_ngp", tmp_path)
+    plain = load_dataset(root, test_every=0, resolution=2)
+    (root / "images_2").mkdir()
+    for v in plain.train:
+        full = np.asarray(Image.open(v.image_path).convert("RGB"))
+        Image.fromarray(full[::2, ::2]).save(root / "images_2" / v.image_path.name)
+    ds = load_dataset(root, test_every=0, resolution=2)
+    assert [v.name for v in ds.train] == [v.name for v in plain.train]
+    for a, b in zip(plain.train, ds.train):
+        assert b.image_path.parent.name == "images_2"
+        assert (b.camera.width, b.camera.height, b.camera.fx, b.camera.cx) == \
+            (a.camera.width, a.camera.height, a.camera.fx, a.camera.cx)
+        expect = b.loader.undistorter.undistort(
+            np.asarray(Image.open(b.image_path).convert("RGB"), dtype=np.float32) / 255.0, (b.camera.width,
+                                                                                              b.camera.height))
+        np.testing.assert_allclose(b.load_image(), expect, atol=1e-6)
+    shutil.rmtree(root / "images")
+    assert len(load_dataset(root, test_every=0, resolution=2).train) == len(plain.train)
+    (root / "images_2" / Path(plain.train[0].image_path).name).unlink()
+    with caplog.at_level(logging.WARNING):
+        left = load_dataset(root, test_every=0, resolution=2)
+    assert len(left.train) == len(plain.train) - 1 and "skipping 2 of 5 frames" in caplog.text
+    with pytest.raises(ValueError, match=r"none of the 5 frames"):  # at -r 1 images/ is needed again
+        load_dataset(root, test_every=0)
+
+
 def write_masks(root: Path, names: dict[str, str], size=(24, 16), seed=0) -> dict[str, np.ndarray]:
     """Random grey masks for the tiny COLMAP scene's images, saved as ``masks/<file name>``; returns name -> m (H, W)."""
     rng = np.random.default_rng(seed)

@@ -5,7 +5,9 @@ Layouts (checked in this order, like the reference 3DGS):
 - ``colmap``: ``images/`` + ``sparse/0`` (or ``sparse/``) with ``cameras``, ``images``, ``points3D`` as .bin or .txt.
   Test split: images sorted by name, ``index % test_every == 0`` is test. Initial points: the SfM points (random
   points around the cameras, as for ngp, when the model has none).
-  With ``resolution = r > 1`` and an ``images_r/`` folder, its images are read instead of resampling ``images/``.
+  With ``resolution = r > 1`` and an ``images_r/`` folder, its images are read instead of resampling ``images/``
+  (the same for the ``blender`` and ``ngp`` layouts: ``images_r/`` beside the transforms file, nerfstudio's
+  downscaled folders, holding each frame's image under its file name).
   Masks (``masks=True``): when a ``masks/`` folder (``masks_r/`` with ``images_r/``) sits beside ``images/``, every
   image needs its mask there, named like the image, the image name + ``.png`` (COLMAP's convention) or
   ``<stem>_mask.<ext>``; white is the object. The image is composited through it over the background and the mask is
@@ -42,7 +44,7 @@ from . import blender as _blender
 from . import colmap as _colmap
 from . import pointcloud as _pc
 from .camera import GL_TO_CV, Camera
-from .images import IMAGE_EXTENSIONS, ImageLoader, Undistorter, color_space_of, image_size
+from .images import IMAGE_EXTENSIONS, ImageLoader, Undistorter, color_space_of, image_size, resolve_image_file
 
 log = logging.getLogger(__name__)
 
@@ -289,17 +291,28 @@ def _points_around(train: list[View], n_points: int, seed: int):
 
 # ---------------------------------------------------------------------------------------------------- transforms
 def _frame_views(path: Path, builder: _Builder, skip_missing: bool) -> list[View]:
+    """The views of one transforms file. With resolution r > 1 and an ``images_r/`` folder beside the file, every
+    frame's image is read from ``images_r/<its file name>`` (nerfstudio's downscaled folders), already reduced."""
     frames = _blender.read_frames(path)
-    missing = [f for f in frames if not f.exists]
+    reduced_dir = path.parent / f"images_{builder.resolution}"
+    reduced = builder.resolution > 1 and reduced_dir.is_dir()
+    files = []                                      # (frame, image path, exists, file size) of the file to read
+    for f in frames:
+        if reduced:
+            image_path, exists = resolve_image_file(reduced_dir, f.image_path.name)
+            files.append((f, image_path, exists, image_size(image_path) if exists else None))
+        else:
+            files.append((f, f.image_path, f.exists, f.file_size))
+    missing = [(f, p) for f, p, exists, _ in files if not exists]
     if missing and not skip_missing:
-        raise ValueError(f"{missing[0].image_path}: image file not found (frame {missing[0].index} of {path})")
+        raise ValueError(f"{missing[0][1]}: image file not found (frame {missing[0][0].index} of {path})")
     if missing:
-        names = ", ".join(f.name for f in missing[:5]) + (", ..." if len(missing) > 5 else "")
+        names = ", ".join(f.name for f, _ in missing[:5]) + (", ..." if len(missing) > 5 else "")
         log.warning("%s: skipping %d of %d frames whose image file is missing (%s)", path, len(missing),
                     len(frames), names)
     views = []
-    for f in frames:
-        if not f.exists:
+    for f, image_path, exists, file_size in files:
+        if not exists:
             continue
         intrinsics = f.intrinsics
         w2c = np.linalg.inv(f.camera_to_world_gl @ GL_TO_CV)
@@ -308,8 +321,9 @@ def _frame_views(path: Path, builder: _Builder, skip_missing: bool) -> list[View
         if intrinsics.distortion is not None:
             model, params = intrinsics.distortion
             undistorter = builder.undistorter(model, intrinsics.width, intrinsics.height, params, source)
-        views.append(builder.view(f.name, f.image_path, f.file_size, (intrinsics.width, intrinsics.height), w2c,
-                                  (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy), undistorter, source))
+        views.append(builder.view(f.name, image_path, file_size, (intrinsics.width, intrinsics.height), w2c,
+                                  (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy), undistorter, source,
+                                  reduced_file=reduced))
     if not views:
         raise ValueError(f"{path}: none of the {len(frames)} frames has its image file")
     return views
