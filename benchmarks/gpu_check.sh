@@ -4,6 +4,8 @@
 #   bash benchmarks/gpu_check.sh tests   # the suite on cuda_ad_rgb, the training loop's throughput (frozen against
 #                                        # traced, GPU utilization, profile), ours on mi_objects/colmap to 7k
 #   bash benchmarks/gpu_check.sh peers   # the rasterizer against gsplat, gsplat's simple_trainer recipe to 7k
+#   bash benchmarks/gpu_check.sh quality setup|start|finish   # ours against gsplat's recipe, 7k of 30k, on the four
+#                                        # shared datasets, quality and minutes (two calls: see "quality" below)
 # Run from the project's root on the GPU machine. Here, first:
 #   bash ../shared/tools/gpu/prepare.sh --gsplat        # .gpu/: Mitsuba/Dr.Jit runtime (+ gsplat's wheel)
 #   mkdir -p .gpu/data/mi_objects && cp -r ../shared/data/mi_objects/colmap .gpu/data/mi_objects/
@@ -24,6 +26,72 @@ nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.max.sm,power.limi
 source .gpu/bootstrap.sh
 site=${MIGS_SITE:-/tmp/mi-gs-site}
 data() { mkdir -p ../shared && ln -sfn "$PWD/.gpu/data" ../shared/data; }
+
+if [ "$part" = quality ]; then
+    # Training quality and whole-run minutes, ours against gsplat's recipe, 7k of the 30k schedule, one run at a time
+    # (so the minutes mean something), in this order: mi_objects/colmap, mi_room/colmap, fox -r 4, maryrose -r 8.
+    # What a run needs goes to /tmp, which outlives a call on a warm machine (ignored files in the checkout do not:
+    # a later call removes what it does not carry). One call carries at most 64 MiB, so two calls, back to back:
+    #   call 1 (carry .gpu/site.tar.xz .gpu/pycolmap.tar.xz .gpu/bootstrap.sh):   gpu_check.sh quality setup
+    #   call 2 (carry .gpu/gsplat-1.5.3-py3-none-any.whl .gpu/data.tar.xz .gpu/bootstrap.sh):
+    #          gpu_check.sh quality setup && gpu_check.sh quality start
+    #   a call 3 within the warm time, if call 2's wait ended first:   gpu_check.sh quality finish
+    # Here, first: prepare.sh --gsplat; pycolmap's wheel unpacked and packed again as .gpu/pycolmap.tar.xz; and
+    #   python benchmarks/pack_data.py .gpu/data fox:4 maryrose:8 mi_objects/colmap mi_room/colmap
+    #   tar -C .gpu -cf - data | xz -T2 -6 > .gpu/data.tar.xz && rm -r .gpu/data        # ~18 MB
+    # The runs go on detached (setsid) between calls. Q_SHORT (7000) and WAIT_S (seconds a call waits) allow a short
+    # dry run on the CPU (Q_DATA=../shared/data there). Seen on an H200: seven of our runs at once made no more
+    # iterations per second together than one alone, hence one at a time.
+    phase=${2:-start}
+    R=${Q_ROOT:-/tmp/q}
+    short=${Q_SHORT:-7000}
+    QDATA=${Q_DATA:-/tmp/q-data}
+    collect() {
+        python3 benchmarks/collect_runs.py "$R/ablation" --curve 2000 4000 6000 "$short" \
+            --json "$OUT/ours.json" > "$OUT/ours.md" 2>> "$OUT/collect.log"
+        cat "$R"/gsplat_*.md > "$OUT/gsplat.md" 2>/dev/null
+        tar -C "$R" -czf "$OUT/logs.tar.gz" logs $(cd "$R" && ls gsplat_*.json 2>/dev/null)
+        echo "== ours"; cat "$OUT/ours.md"; echo "== gsplat"; grep -hE '^\| gsplat|rror' "$R"/gsplat_*.md
+    }
+    running() { pgrep -f "$R/" > /dev/null; }
+    case "$phase" in
+    setup)
+        [ -f .gpu/pycolmap.tar.xz ] && tar -xJf .gpu/pycolmap.tar.xz -C "$site"
+        [ -f .gpu/data.tar.xz ] && mkdir -p "$QDATA" && tar -xJf .gpu/data.tar.xz -C "$QDATA" --strip-components 1
+        python3 -c "import mitsuba, pycolmap" 2>&1 | tail -n 1
+        say "set up: $(ls "$site" | tr '\n' ' ')"
+        exit 0 ;;
+    start)
+        python3 -c "import mitsuba, pycolmap" && [ -d "$site/gsplat" ] || { say "not set up (the setup calls first)"; exit 2; }
+        [ -d "$QDATA/mi_objects" ] || { say "$QDATA: no datasets (the setup call with data.tar.xz)"; exit 2; }
+        mkdir -p ../shared "$R/logs"
+        if [ ! -e ../shared/data ] || [ -L ../shared/data ]; then ln -sfn "$QDATA" ../shared/data; fi
+        G="python3 benchmarks/gsplat_train.py"
+        A="python3 benchmarks/ablation.py"
+        lane="MAX_JOBS=14 python3 -c 'from gsplat.cuda._backend import _C' > $R/logs/gsplat_build.log 2>&1;"
+        for pair in mi_objects_colmap:mi_objects_colmap mi_room_colmap:mi_room_colmap fox_r4:fox maryrose_r8:maryrose; do
+            ours=${pair%%:*}; peer=${pair##*:}
+            lane="$lane $A $ours --only defaults --iterations $short --schedule 30000 --out $R/ablation \
+                > $R/logs/ours_$ours.log 2>&1; $G $peer --milestones $short --schedule 30000 \
+                --out $R/gsplat_${peer}.json > $R/gsplat_${peer}.md 2>&1;"
+        done
+        # the gsplat build (~90 s of 16 cores) runs beside our first run; its minutes are read with that in mind
+        setsid nohup timeout -k 30 "${RUN_S:-1500}" bash -c "$lane" > "$R/logs/lane.log" 2>&1 < /dev/null &
+        say "started; waiting up to ${WAIT_S:-540} s"
+        while running && [ $(($(date +%s) - T0)) -lt "${WAIT_S:-540}" ]; do sleep 5; done ;;
+    finish)
+        say "waiting up to ${WAIT_S:-150} s for the runs still going"
+        while running && [ $(($(date +%s) - T0)) -lt "${WAIT_S:-150}" ]; do sleep 5; done
+        if running; then
+            say "stopping the runs still going (they checkpoint on SIGTERM)"
+            pkill -TERM -f "$R/"; for i in $(seq 30); do running || break; sleep 1; done
+        fi ;;
+    *) echo "usage: gpu_check.sh quality setup|start|finish" >&2; exit 2 ;;
+    esac
+    say "collecting"
+    collect
+    exit 0
+fi
 
 if [ "$part" = peers ]; then
     say "gsplat's CUDA build"
