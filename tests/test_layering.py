@@ -41,6 +41,7 @@ LAYERS: dict[str, float] = {
     "mi_gaussians.conventions": 0,
     "mi_gaussians.imwrite": 0,
     "mi_gaussians.image_ops": 0,
+    "mi_gaussians.image_walk": 0,
     "mi_gaussians.run_folder": 0,
     "mi_gaussians.errors": 0,
     # 0.5: metrics, on the base only

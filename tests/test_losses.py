@@ -13,7 +13,7 @@ from scipy.ndimage import correlate, gaussian_filter
 
 from kernel_log import KernelLog
 from mi_gaussians.drjit_utils import owned_tensor
-from mi_gaussians import image_ops
+from mi_gaussians import image_ops, image_walk
 from mi_gaussians.optim import losses
 
 C1, C2 = 0.01 ** 2, 0.03 ** 2
@@ -344,9 +344,9 @@ def test_short_blocks(monkeypatch):
         return v[0], np.array(dr.grad(x))
 
     v0, g0 = run()
-    monkeypatch.setattr(image_ops, "_BLOCK_Y", 7)
-    monkeypatch.setattr(image_ops, "_BLOCK_X", 6)
-    monkeypatch.setattr(image_ops, "_UNROLL", 4)
+    monkeypatch.setattr(image_walk, "_BLOCK_Y", 7)
+    monkeypatch.setattr(image_walk, "_BLOCK_X", 6)
+    monkeypatch.setattr(image_walk, "_UNROLL", 4)
     v1, g1 = run()
     assert abs(v0 - loss_ref(a, b, 0.2)) < 1e-6 and abs(v1 - v0) < 1e-6
     np.testing.assert_allclose(g1, g0, rtol=1e-5, atol=1e-10)
