@@ -30,11 +30,12 @@ EVAL = "eval.json"
 EXPOSURE = "exposure.json"               # the training images' colour transforms (--exposure), name -> 3x4
 EXPOSURE_GRIDS = "exposure_grids.npz"    # ... their bilateral grids (--exposure bilateral): names, grids
 GAUSSIAN_SCENE = "gaussians.xml"
+CAMERAS = "cameras.json"                 # the run's training and test cameras ({"train": [...], "test": [...]})
 REFERENCES = "references"
 POINTS = "points"                        # triangulated initial points, cached (kept by --overwrite, as references)
 #: The names a run writes at the top of its folder (how a folder of an earlier version, without a Manifest, is read)
 RUN_OUTPUTS = (CHECKPOINTS, RENDERS, COMPARE, CONFIG, METRICS, EVAL, HISTORY, CURVES, GAUSSIAN_SCENE, MODEL, EXPOSURE,
-               EXPOSURE_GRIDS)
+               EXPOSURE_GRIDS, CAMERAS)
 _SAVED_MODELS = "point_cloud_*.ply"       # the models of TrainConfig.save_iterations
 
 LOCK = ".mi-gs.lock"
@@ -177,7 +178,7 @@ def run_outputs(cfg: TrainConfig, view_names, scene_file: bool) -> list[str]:
     """Every file and folder (relative to the run folder) a run of ``cfg`` writes, its views being ``view_names``
     (those it renders at the end) and ``scene_file`` whether it trains on a Mitsuba scene (``gaussians.xml``)."""
     stems = [Path(n).stem for n in view_names]
-    out = [CONFIG, CHECKPOINTS, CHECKPOINT, MODEL, METRICS, HISTORY, CURVES, RENDERS, COMPARE]
+    out = [CONFIG, CHECKPOINTS, CHECKPOINT, MODEL, METRICS, HISTORY, CURVES, RENDERS, COMPARE, CAMERAS]
     out += [saved_model(i) for i in cfg.save_iterations if i < cfg.optim.iterations]
     out += [f"{RENDERS}/{s}{ext}" for s in stems for ext in (".exr", ".png")] + [f"{COMPARE}/{s}.png" for s in stems]
     compensation = {"affine": [EXPOSURE], "bilateral": [EXPOSURE_GRIDS]}.get(cfg.optim.exposure, [])

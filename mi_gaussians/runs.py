@@ -23,11 +23,20 @@ import numpy as np
 from .config import RasterConfig, TrainConfig
 from .data.dataset import Dataset, load_dataset
 from .data.scene_file import is_scene_file
-from .run_folder import CONFIG, GAUSSIAN_SCENE, MODEL, RunLock, RunRecord, references_root
+from .run_folder import CAMERAS, CONFIG, GAUSSIAN_SCENE, MODEL, RunLock, RunRecord, references_root
 
 
-def _stderr(line: str) -> None:
+def to_stderr(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
+
+
+#: How the lines a run says to its log begin when they are warnings (kept by ``--quiet``) rather than information
+WARNINGS = ("note: ", "mi-gs: warning: ")
+
+
+def quiet(log: Callable[[str], None]) -> Callable[[str], None]:
+    """``log`` for the warnings only (``--quiet``): lines beginning with one of :data:`WARNINGS`."""
+    return lambda line: log(line) if line.startswith(WARNINGS) else None
 
 
 @dataclass
@@ -92,7 +101,7 @@ def stopping_on_signals():
 
 def train_run(src: str | Path, out: str | Path, cfg: TrainConfig, record: RunRecord | None = None,
               overwrite: bool = False, cache: str | None = None, progress: bool = True,
-              watch: Callable | None = None, farm=None, log: Callable[[str], None] | None = _stderr,
+              watch: Callable | None = None, farm=None, log: Callable[[str], None] | None = to_stderr,
               stop=None) -> RunResult:
     """Train one run of ``cfg`` on ``src`` in the folder ``out``: a new one, or the run whose ``record`` is given
     (resumed from its checkpoint). The folder is locked for the run (one run per folder; a second process gets
@@ -104,6 +113,8 @@ def train_run(src: str | Path, out: str | Path, cfg: TrainConfig, record: RunRec
     (a signal then stops the run with :class:`Stopped`). A diverged run raises ``TrainingDiverged``."""
     out = Path(out)
     check_outside_dataset(src, out)
+    if cache is not None:
+        check_outside_dataset(src, cache, "--cache")
     created = not out.exists()
     lock = RunLock(out)
     lock.acquire()                                # before anything is written into the folder
@@ -173,6 +184,7 @@ def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cac
         if overwrite:
             manifest.remove_outputs()
         manifest.claim(planned)
+        write_cameras(out / CAMERAS, ds)
         try:
             metrics = trainer.run(resume=record is not None, fingerprint=digest,
                                   monitor=None if watcher is None else watcher.training_monitor)
@@ -191,6 +203,17 @@ def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cac
     return RunResult(metrics, trainer, trainer.resumed_from, watcher)
 
 
+def write_cameras(path: Path, ds: Dataset) -> None:
+    """``cameras.json`` of a run: its training and test cameras, each an object in the camera JSON format that
+    ``mi-gs render --camera`` and ``mi-gs view --camera`` take (README, "Camera JSON"), named like the views."""
+    import json
+
+    from .io_utils import atomic_write_text
+
+    atomic_write_text(path, json.dumps({"train": [v.camera.to_dict() for v in ds.train],
+                                        "test": [v.camera.to_dict() for v in ds.test]}, indent=1) + "\n")
+
+
 def _note_if_never_refined(trainer, cfg: TrainConfig, log: Callable[[str], None]) -> None:
     """One line when no refinement of the strategy falls within the run (e.g. a run shorter than its start): the run
     adds no Gaussians."""
@@ -205,7 +228,7 @@ def _note_if_never_refined(trainer, cfg: TrainConfig, log: Callable[[str], None]
 
 
 def check_resumed_dataset(src: Path, out: Path, record: RunRecord, fingerprint: str | None,
-                          log: Callable[[str], None] | None = _stderr) -> None:
+                          log: Callable[[str], None] | None = to_stderr) -> None:
     """A resumed run trains on the folder it started on, with the same content (ValueError otherwise)."""
     if Path(record.dataset) != Path(src).resolve():
         raise ValueError(f"--resume: the run in {out} was trained on {record.dataset}, not on {Path(src).resolve()} "
@@ -222,7 +245,7 @@ def check_resumed_dataset(src: Path, out: Path, record: RunRecord, fingerprint: 
 
 def training_dataset(src: str | Path, cfg: TrainConfig, out: str | Path, cache: str | None = None,
                      progress: bool = True, expect_key: str | None = None, render_missing: bool = True,
-                     farm=None, log: Callable[[str], None] | None = _stderr, with_points: bool = True) -> Dataset:
+                     farm=None, log: Callable[[str], None] | None = to_stderr, with_points: bool = True) -> Dataset:
     """The dataset a run of ``cfg`` in ``out`` trains on, with the points it starts from: a dataset folder (COLMAP,
     Blender, instant-ngp; :func:`initial_points`), or a Mitsuba scene file whose path-traced references are cached in
     ``cache`` (default OUTDIR/references); references missing from the cache are rendered (by ``farm`` when given)
@@ -248,7 +271,7 @@ def points_root(out: Path, cache: str | None) -> Path:
     return (Path(cache) if cache else Path(out)) / "points"
 
 
-def initial_points(ds: Dataset, cfg: TrainConfig, cache: Path, log: Callable[[str], None] | None = _stderr) -> Dataset:
+def initial_points(ds: Dataset, cfg: TrainConfig, cache: Path, log: Callable[[str], None] | None = to_stderr) -> Dataset:
     """``ds`` with the points a run of ``cfg`` starts from (``data.init``, :data:`mi_gaussians.config.INITS`): the
     layout's own, triangulated from the posed training images (cached in ``cache``), or random; 'auto' takes the
     first of these that there is (triangulated points joined by the random ones when the images have alpha:

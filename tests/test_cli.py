@@ -75,6 +75,42 @@ def test_info_on_ply():
     assert info["gaussians"] == 2000 and info["sh_degree"] == 1
 
 
+def test_info_on_splat_spz_and_run_folders(tmp_path):
+    """mi-gs info reads what mi-gs writes: .splat / .spz models, and a run folder (finished, or stopped with only a
+    checkpoint); a damaged .spz is one line naming it."""
+    from mi_gaussians.model.ply import read_ply
+    from mi_gaussians.model.web_formats import write_model
+
+    p = read_ply(SCENES / "tiny_gaussians.ply")
+    for name in ("m.splat", "m.spz"):
+        write_model(tmp_path / name, p)
+        res = run("info", tmp_path / name)
+        assert res.returncode == 0, res.stderr
+        info = json.loads(res.stdout)
+        assert info["gaussians"] == 2000 and info["format"] == name[2:], info
+        assert info["sh_degree"] == (0 if name.endswith("splat") else 1)
+    (tmp_path / "bad.spz").write_bytes(b"\x1f\x8b" + b"not gzip at all")
+    assert_one_line_error(run("info", tmp_path / "bad.spz"), "bad.spz")
+    out = tmp_path / "run"
+    r = run("optimize", ROOT / "tests" / "data" / "tiny_colmap", "-o", out, "--iterations", 20, "--quiet",
+            "--checkpoint-every", 10)
+    assert r.returncode == 0, r.stderr
+    # every run writes its cameras, each in the camera JSON format render --camera takes
+    cams = json.loads((out / "cameras.json").read_text())
+    assert [len(cams["train"]), len(cams["test"])] == [2, 1] and cams["test"][0]["name"]
+    (tmp_path / "cam.json").write_text(json.dumps(cams["test"][0]))
+    r = run("render", out / "point_cloud.ply", "--camera", tmp_path / "cam.json", "-o", tmp_path / "test.png")
+    assert r.returncode == 0 and (tmp_path / "test.png").is_file(), r.stderr
+    info = json.loads(run("info", out).stdout)
+    assert info["run"] == str(out) and info["finished"] and info["iterations"] == 20
+    assert info["checkpoint"]["iteration"] == 20 and info["model"]["gaussians"] == info["checkpoint"]["gaussians"]
+    assert info["test"]["psnr"] == json.loads((out / "metrics.json").read_text())["mean"]["psnr"]
+    for f in ("metrics.json", "point_cloud.ply"):                  # a run stopped before its end
+        (out / f).unlink()
+    info = json.loads(run("info", out).stdout)
+    assert not info["finished"] and "test" not in info and "model" not in info and info["checkpoint"]["iteration"] == 20
+
+
 def test_render_ply_with_camera_json(tmp_path):
     exr, png = tmp_path / "out.exr", tmp_path / "out.png"
     for out in (exr, png):
@@ -280,3 +316,10 @@ def test_a_run_shorter_than_its_densification_start_says_so(tmp_path):
                     "densify.densification_interval=5", "--set", "densify.densify_until_iter=25")
     assert densified.returncode == 0, densified.stderr
     assert "densification" not in densified.stderr, densified.stderr
+    # --quiet: no information lines (the initial points were printed before), only the note above and the JSON;
+    # without it, the information is there
+    assert densified.stderr.strip() == "" and json.loads(densified.stdout)["gaussians"] > 0
+    assert [ln for ln in short.stderr.splitlines() if ln.strip()] == [
+        ln for ln in short.stderr.splitlines() if ln.startswith("note: no densification")]
+    loud = run("optimize", data, "-o", tmp_path / "loud", "--iterations", 5, "--random-points", 400, "--eval-every", 0)
+    assert loud.returncode == 0 and "initial points: 400 random" in loud.stderr, loud.stderr

@@ -168,7 +168,7 @@ def test_distributed_references_equal_single_process_ones(ray_cluster, tmp_path)
     scene = write_scene(tmp_path / "scene.xml", w=24, h=24, spp=4, sky="$sky")
     scene.write_text(scene.read_text().replace("<sensor", '<default name="sky" value="0.2"/><sensor', 1))
     r = run("optimize", scene, "-o", tmp_path / "run", "--workers", "2", "--address", ray_cluster, "--iterations", 5,
-            "--views", 5, "--test-views", 2, "-D", "sky=0.6", "--init", "random", "--init-points", 200, "--quiet")
+            "--views", 5, "--test-views", 2, "-D", "sky=0.6", "--init", "random", "--init-points", 200)
     assert r.returncode == 0, r.stderr
     assert "on 2 Ray workers" in r.stderr
     (farmed,) = (tmp_path / "run" / "references").iterdir()
@@ -215,15 +215,51 @@ def test_shared_folder_check(ray_cluster, tmp_path, monkeypatch):
     ('datasets = ["{a}"]\n[set]\n"mcmc.cap_max" = 10\n[grid]\nstrategy = ["default", "mcmc"]',
      "set.mcmc.cap_max: the mcmc section configures --strategy mcmc, not the default strategy"),
     ('datasets = ["{a}"]\n[set]\nstrategy = "mcmc"\n[grid]\nstrategy = ["default"]', "set.strategy: is also in [grid]"),
-    ('datasets = ["{a}"]\n[resources]\ncpus = 0', "resources.cpus: expected a number > 0"),
+    ('datasets = ["{a}"]\n[resources]\ncpus = 0', "resources.cpus: expected a whole number >= 1, or a fraction"),
+    ('datasets = ["{a}"]\n[resources]\ncpus = inf', "resources.cpus: expected a whole number >= 1"),
+    ('datasets = ["{a}"]\n[resources]\ncpus = nan', "resources.cpus: expected a whole number >= 1"),
+    ('datasets = ["{a}"]\n[resources]\ncpus = 0.00001', "in steps of 0.0001, got 1e-05"),
+    ('datasets = ["{a}"]\n[resources]\ncpus = 1.5', "resources.cpus: expected a whole number >= 1"),
+    ('datasets = ["{a}"]\n[resources]\ngpus = -1', "resources.gpus: expected a whole number >= 0"),
+    ('datasets = ["{a}"]\nseeds = [0, 1]\n[set]\nseed = 3', "set.seed: a run's seed comes from the spec's seeds"),
+    ('datasets = ["{a}"]\n[set]\n"data.seed" = 3', "set.data.seed: a run's seed comes from the spec's seeds"),
+    ('datasets = ["{a}"]\n[grid]\nseed = [1, 2]', "grid.seed: a run's seed comes from the spec's seeds"),
+    ('datasets = ["{a}"]\niterations = 300\n[set]\n"optim.iterations" = 500',
+     "set.optim.iterations: give the number of iterations as the spec's iterations = N"),
+    ('datasets = ["{a}"]\n[grid]\n"optim.iterations" = [100, 200]', "grid.optim.iterations: give the number"),
+    ('datasets = ["{notdata}"]', "datasets[0]: {notdata}: unknown dataset layout"),
+    ('datasets = ["{empty}"]', "empty folder, not a dataset"),
     ('datasets = ["{a}"]\n[resources]\nram = 2', "resources.ram: not a resource"),
     ('datasets = ["{a}"', "not valid TOML"),
 ])
 def test_bad_specs_are_one_line_naming_the_key(tmp_path, text, words):
-    spec = write_spec(tmp_path / "spec.toml", text.replace("{a}", str(DATA / "tiny_blender")))
+    (tmp_path / "notdata").mkdir()
+    (tmp_path / "notdata" / "photo.jpg").write_bytes(b"not a dataset")
+    (tmp_path / "empty").mkdir()
+    fill = {"{a}": str(DATA / "tiny_blender"), "{notdata}": str(tmp_path / "notdata"), "{empty}": str(tmp_path / "empty")}
+    for k, v in fill.items():
+        text, words = text.replace(k, v), words.replace(k, v)
+    spec = write_spec(tmp_path / "spec.toml", text)
     with pytest.raises(ValueError) as e:
         read_spec(spec)
     assert words in str(e.value) and str(spec) in str(e.value) and "\n" not in str(e.value), str(e.value)
+
+
+def test_fractional_and_whole_resources_are_taken(tmp_path):
+    for cpus, gpus in ((0.5, 0), (2, 0.25), (1, 1), (0.0001, 0.5)):
+        spec = write_spec(tmp_path / "spec.toml", f'datasets = ["{DATA / "tiny_blender"}"]\n[resources]\n'
+                                                  f"cpus = {cpus}\ngpus = {gpus}\n")
+        got = read_spec(spec)
+        assert (got.cpus, got.gpus) == (cpus, gpus)
+
+
+def test_a_spec_that_is_not_utf8_is_named(tmp_path):
+    spec = tmp_path / "spec.toml"
+    spec.write_bytes(b'datasets = ["caf\xe9"]\n')
+    with pytest.raises(ValueError, match=r"spec\.toml: not UTF-8 text"):
+        read_spec(spec)
+    assert_one_line_error(run("sweep", spec, "-o", tmp_path / "out"), "not UTF-8 text")
+    assert not (tmp_path / "out").exists()
 
 
 def test_bad_spec_through_the_command_line_writes_nothing(tmp_path):
@@ -277,3 +313,135 @@ def test_a_sweep_started_before_the_cache_was_renamed_keeps_its_references(tmp_p
     assert cache_folder(tmp_path) == tmp_path / "references"
     (tmp_path / "cache").mkdir()
     assert cache_folder(tmp_path) == tmp_path / "cache"
+
+
+# ------------------------------------------------------------------------- what a sweep may write, and where (no Ray)
+def tree(folder: Path) -> dict:
+    """Every file below ``folder`` with its bytes (what a refused command must leave as it was)."""
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_a_sweep_refuses_a_folder_of_the_users(tmp_path):
+    """A folder that is neither new, nor empty, nor a sweep's: refused in one line before anything is written (the
+    user's spec.toml and results.csv there were replaced without a word before)."""
+    spec = write_spec(tmp_path / "s.toml", f'datasets = ["{DATA / "tiny_blender"}"]\niterations = 5\n')
+    out = tmp_path / "mine"
+    write_spec(out / "spec.toml", "# my own notes\n")
+    (out / "results.csv").write_text("my,numbers\n1,2\n")
+    before = tree(out)
+    assert_one_line_error(run("sweep", spec, "-o", out), f"{out / 'spec.toml'}: exists and was not written by mi-gs",
+                          "a new or empty folder")
+    assert tree(out) == before and sorted(p.name for p in out.iterdir()) == ["results.csv", "spec.toml"]
+
+
+def test_a_sweep_folder_may_hold_its_own_spec_and_an_earlier_sweeps_outputs(tmp_path):
+    from mi_gaussians.cluster.sweep import OUTPUTS, SPEC, _check_out
+
+    out = tmp_path / "sweep"
+    spec_path = write_spec(out / "spec.toml", f'datasets = ["{DATA / "tiny_blender"}"]\niterations = 5\n')
+    spec = read_spec(spec_path)
+    # mi-gs sweep OUT/spec.toml -o OUT: the spec stays the user's (not claimed, not rewritten), the rest is the sweep's
+    assert _check_out(spec, out, overwrite=False) == [n for n in OUTPUTS if n != SPEC]
+    # a sweep of an earlier version (no manifest): its spec.toml, runs/ and cache/ are its own
+    old = tmp_path / "old"
+    write_spec(old / "spec.toml", "# the spec of that sweep\n")
+    (old / "runs").mkdir()
+    (old / "cache").mkdir()
+    assert _check_out(spec, old, overwrite=False) == list(OUTPUTS)
+    # ... but not without its runs: then spec.toml is somebody's file
+    (old / "runs").rmdir()
+    with pytest.raises(ValueError, match="exists and was not written by mi-gs"):
+        _check_out(spec, old, overwrite=False)
+
+
+def test_a_sweep_output_inside_a_dataset_is_refused(tmp_path):
+    import shutil
+
+    data = tmp_path / "tiny_blender"
+    shutil.copytree(DATA / "tiny_blender", data)
+    spec = write_spec(tmp_path / "s.toml", f'datasets = ["{data}"]\niterations = 5\n')
+    before = tree(data)
+    assert_one_line_error(run("sweep", spec, "-o", data / "sweep"), "lies in the dataset folder", str(data))
+    assert tree(data) == before and not (data / "sweep").exists()
+
+
+def test_a_cache_inside_the_dataset_is_refused(tmp_path):
+    import shutil
+
+    data = tmp_path / "tiny_colmap"
+    shutil.copytree(DATA / "tiny_colmap", data)
+    before = tree(data)
+    r = run("optimize", data, "-o", tmp_path / "run", "--iterations", "5", "--cache", data / "cache", "--quiet")
+    assert_one_line_error(r, "--cache", "lies in the dataset folder")
+    assert tree(data) == before and not (data / "cache").exists()
+    r = run("points", data, "-o", tmp_path / "p.ply", "--cache", data / "cache")
+    assert_one_line_error(r, "--cache", "lies in the dataset folder")
+    assert tree(data) == before and not (tmp_path / "p.ply").exists()
+
+
+def test_overwrite_leaves_a_run_folder_in_use_alone(tmp_path):
+    """--overwrite takes each run folder's lock before it removes anything there: an optimize still running in one
+    (here: its lock held) gets its files kept, and the sweep stops in one line before removing anything."""
+    from mi_gaussians.run_folder import RunLock
+
+    spec = write_spec(tmp_path / "s.toml", SPEC.format(a=DATA / "tiny_blender", b=DATA / "tiny_colmap"))
+    runs = read_spec(spec).runs
+    out = tmp_path / "out"
+    write_spec(out / "spec.toml", spec.read_text())                       # an earlier sweep's folder
+    (out / "cache").mkdir()
+    for r in runs:
+        (out / "runs" / r.name / "checkpoints").mkdir(parents=True)
+        (out / "runs" / r.name / "checkpoints" / "ckpt.npz").write_bytes(b"a run's checkpoint")
+    before = tree(out)
+    lock = RunLock(out / "runs" / runs[-1].name).acquire()                # a live optimize there
+    try:
+        assert_one_line_error(run("sweep", spec, "-o", out, "--overwrite"), str(out / "runs" / runs[-1].name),
+                              "another mi-gs process", f"PID {os.getpid()}")
+    finally:
+        lock.release()
+    assert {k: v for k, v in tree(out).items() if not k.endswith(".lock")} == before
+
+
+# -------------------------------------------------------------------------------------- bounded waits: no hangs
+def test_an_address_where_nothing_listens_is_one_line_within_the_bound(tmp_path):
+    """Ray retried such an address for 10 minutes and more, printing only its own warnings."""
+    import socket
+
+    from mi_gaussians.cluster.ray_cluster import CONNECT_SECONDS
+
+    with socket.socket() as s:                  # a port that nothing listens on (bound, then closed)
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    spec = write_spec(tmp_path / "s.toml", f'datasets = ["{DATA / "tiny_blender"}"]\niterations = 5\n')
+    t0 = time.monotonic()
+    r = run("sweep", spec, "-o", tmp_path / "out", "--address", f"127.0.0.1:{port}")
+    assert time.monotonic() - t0 < CONNECT_SECONDS + 60
+    assert_one_line_error(r, f"--address 127.0.0.1:{port}: nothing answers there")
+    assert not (tmp_path / "out").exists()
+    for bad in ("nowhere", "host:port", "[::1]:99999"):
+        assert_one_line_error(run("sweep", spec, "-o", tmp_path / "out", "--address", bad), "expected HOST:PORT")
+
+
+def test_resources_no_node_has_are_refused_not_waited_for(ray_cluster, tmp_path):
+    """Ray keeps a task that no node can hold waiting for ever (the sweep hung at 0/1): refused in one line."""
+    for resources, words in (("cpus = 64", "resources.cpus: 64 per run, but the largest node has 2"),
+                             ("gpus = 1", "resources.gpus: 1 per run, but no node of the cluster has a GPU")):
+        spec = write_spec(tmp_path / "s.toml", f'datasets = ["{DATA / "tiny_blender"}"]\niterations = 5\n'
+                                               f"[resources]\n{resources}\n")
+        t0 = time.monotonic()
+        r = run("sweep", spec, "-o", tmp_path / "out", "--address", ray_cluster)
+        assert time.monotonic() - t0 < 120
+        assert_one_line_error(r, str(spec), words)
+        assert not (tmp_path / "out" / "runs").exists()
+
+
+def test_a_lost_run_says_what_died_once():
+    ray = pytest.importorskip("ray", reason="Ray is not installed (pip install '.[test]' brings it)")
+    from mi_gaussians.cluster.sweep import lost_line
+
+    node = lost_line(ray, ray.exceptions.LocalRayletDiedError(), 3)
+    assert node.startswith("the node running it died (LocalRayletDiedError); run the same command again")
+    assert "4 times" not in node
+    assert lost_line(ray, ray.exceptions.NodeDiedError("gone"), 3).startswith("the node running it died")
+    worker = lost_line(ray, ray.exceptions.WorkerCrashedError(), 3)
+    assert worker.startswith("its worker process died 4 times (WorkerCrashedError); run the same command again")

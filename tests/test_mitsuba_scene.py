@@ -388,7 +388,8 @@ def test_optimize_scene_xml_end_to_end(tmp_path):
     ``--overwrite`` reuses the references and ``mi-gs eval`` reproduces the metrics."""
     p = write_scene(tmp_path / "scene.xml", w=40, h=40, spp=64)
     out = tmp_path / "run"
-    rig = ["optimize", p, "-o", out, "--views", 16, "--test-views", 3, "--init-points", 4000, "--quiet"]
+    rig = ["optimize", p, "-o", out, "--views", 16, "--test-views", 3, "--init-points", 4000]   # (not --quiet: the
+    # lines on the references are information, which --quiet leaves out)
     args = rig + ["--iterations", 300, "--eval-every", 50]
     res = run(*args)
     assert res.returncode == 0, res.stderr
@@ -447,7 +448,7 @@ def test_runs_find_their_references(tmp_path):
     assert (tmp_path / "refs").is_dir() and not (run_dir / "references").exists()
     res = run("eval", run_dir)                                     # another working folder
     assert res.returncode == 0 and "rendering" not in res.stderr, res.stderr
-    res = run("optimize", p, "-o", run_dir, "--resume", "--quiet")
+    res = run("optimize", p, "-o", run_dir, "--resume")
     assert res.returncode == 0 and "reusing the 7 cached references" in res.stderr, res.stderr
     # a bad option with --overwrite changes nothing
     assert_one_line_error(run("optimize", p, "-o", run_dir, "--overwrite", "-r", 2), "film size")

@@ -100,6 +100,23 @@ def test_triangulated_points_lie_on_the_sphere_and_the_cache_is_reused(sphere, t
     again = []
     ds2 = training_dataset(sphere, _cfg("data.init=triangulate"), tmp_path / "run", log=again.append)
     assert np.array_equal(ds2.points_xyz, ds.points_xyz) and any("reused" in ln for ln in again)
+    # a damaged cache (truncated, emptied, random bytes, wrong arrays) is computed again with one line, not a crash
+    monkeypatch.undo()
+    (cached,) = (tmp_path / "run" / "points").glob("*/points.npz")
+    good = cached.read_bytes()
+    rng = np.random.default_rng(0)
+    wrong = tmp_path / "wrong.npz"
+    np.savez(wrong, xyz=np.zeros((5, 2)), rgb=np.zeros((5, 3)), seconds="{}", pairs=1, verified=1)
+    for damaged in (good[: len(good) // 2], b"", rng.bytes(4096), wrong.read_bytes()):
+        cached.write_bytes(damaged)
+        lines = []
+        ds3 = training_dataset(sphere, _cfg("data.init=triangulate"), tmp_path / "run", log=lines.append)
+        said = [ln for ln in lines if "damaged" in ln]
+        assert len(said) == 1 and said[0].startswith(f"note: {cached}: damaged cache of initial points"), lines
+        assert said[0].endswith("computing them again") and "\n" not in said[0]
+        assert ds3.points_from == "triangulated" and len(ds3.points_xyz) >= 300
+        assert np.load(cached)["xyz"].shape == ds3.points_xyz.shape          # (written again, whole)
+    monkeypatch.setattr(pycolmap, "extract_features", lambda *a, **k: pytest.fail("triangulated again"))
     # other settings: another cache entry
     with pytest.raises(pytest.fail.Exception, match="triangulated again"):
         training_dataset(sphere, _cfg("data.init=triangulate", "triangulate.min_angle=2"), tmp_path / "run",

@@ -1,4 +1,5 @@
-"""``mi-gs info PATH``: a summary of a model (.ply), a dataset folder or a Mitsuba scene (.xml), as JSON."""
+"""``mi-gs info PATH``: a summary of a model (.ply, .splat, .spz), a run folder, a dataset folder or a Mitsuba scene
+(.xml), as JSON."""
 
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ from .errors import InputError
 def add_parser(sub) -> None:
     from ..config import DataConfig
 
-    s = sub.add_parser("info", help="summarize a 3DGS .ply, a dataset folder or a Mitsuba scene .xml")
+    s = sub.add_parser("info", help="summarize a 3DGS model (.ply, .splat, .spz), a run folder (mi-gs optimize -o), a "
+                                    "dataset folder or a Mitsuba scene .xml")
     s.add_argument("path")
     s.add_argument("-r", "--resolution", type=positive_int, default=DataConfig().resolution,
                    help="dataset resolution divisor")
@@ -21,11 +23,18 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    from ..run_folder import CONFIG
+
     path = existing(args.path)
-    if path.suffix.lower() == ".ply":
+    suffix = path.suffix.lower()
+    if suffix == ".ply":
         info = _ply_info(path)
-    elif path.suffix.lower() == ".xml":
+    elif suffix in (".splat", ".spz"):
+        info = _web_info(path)
+    elif suffix == ".xml":
         info = _scene_info(path, args.define)
+    elif path.is_dir() and (path / CONFIG).is_file():
+        info = _run_info(path)
     else:
         info = _dataset_info(path, args.resolution)
     print(json.dumps(info, indent=2))
@@ -38,9 +47,6 @@ def run(args) -> int:
 
 
 def _ply_info(path: Path) -> dict:
-    import numpy as np
-
-    from ..conventions import sh_degree_from_coeff_count, sigmoid
     from ..model.ply import read_ply
     from ..model.point_ply import is_point_cloud, read_points
 
@@ -50,15 +56,65 @@ def _ply_info(path: Path) -> dict:
                 **({"bbox_min": xyz.min(0).round(4).tolist(), "bbox_max": xyz.max(0).round(4).tolist()}
                    if len(xyz) else {})}
 
-    p = read_ply(path)
+    return _model_info(path, read_ply(path))
+
+
+def _model_info(path: Path, p: dict, **extra) -> dict:
+    """The summary of a model's raw parameters (as ``read_ply`` gives them)."""
+    import numpy as np
+
+    from ..conventions import sh_degree_from_coeff_count, sigmoid
+
     n = p["means"].shape[0]
-    info = {"file": str(path), "gaussians": n, "sh_degree": sh_degree_from_coeff_count(p["sh_rest"].shape[1] + 1)}
+    info = {"file": str(path), "gaussians": n, "sh_degree": sh_degree_from_coeff_count(p["sh_rest"].shape[1] + 1),
+            **extra}
     if n:
         opac = sigmoid(p["opacities"].astype(np.float64))
         sig = np.exp(p["scales"].astype(np.float64)).max(axis=1)
         info.update(bbox_min=p["means"].min(0).round(4).tolist(), bbox_max=p["means"].max(0).round(4).tolist(),
                     opacity_mean=round(float(opac.mean()), 4),
                     sigma_max_median=float(np.median(sig)))
+    return info
+
+
+def _web_info(path: Path) -> dict:
+    from ..model.web_formats import read_splat, read_spz
+
+    if path.suffix.lower() == ".splat":
+        return _model_info(path, read_splat(path), format="splat")
+    params, antialiased = read_spz(path)
+    return _model_info(path, params, format="spz", antialiased=bool(antialiased))
+
+
+def _run_info(path: Path) -> dict:
+    """A run folder: what it trains on, how far it got (its checkpoint), its final metrics when it finished, and its
+    model."""
+    import json
+
+    import numpy as np
+
+    from ..run_folder import CHECKPOINT, METRICS, MODEL, RunRecord
+
+    record = RunRecord.read(path, "not readable")
+    cfg = record.train
+    info = {"run": str(path), "dataset": record.dataset, "iterations": cfg.optim.iterations,
+            "strategy": cfg.strategy, "finished": (path / METRICS).is_file() and (path / MODEL).is_file()}
+    if (path / CHECKPOINT).is_file():
+        try:
+            with np.load(path / CHECKPOINT) as z:
+                meta = json.loads(bytes(z["meta"]).decode())
+                info["checkpoint"] = {"iteration": int(meta["step"]), "gaussians": int(z["param/means"].shape[0])}
+        except (OSError, ValueError, KeyError) as e:
+            info["checkpoint"] = {"error": f"not readable ({' '.join(str(e).split())[:120]})"}
+    if (path / METRICS).is_file():
+        try:
+            m = json.loads((path / METRICS).read_text())
+            info["test"] = {k: m["mean"][k] for k in ("psnr", "ssim", "lpips") if k in m.get("mean", {})}
+            info["training_seconds"] = m.get("training_seconds")
+        except (OSError, ValueError, TypeError, AttributeError):
+            info["test"] = {"error": f"{path / METRICS}: not readable"}
+    if (path / MODEL).is_file():
+        info["model"] = _ply_info(path / MODEL)
     return info
 
 

@@ -24,7 +24,8 @@ def add_parser(sub) -> None:
                    help="set any field of the training configuration (mi_gaussians/config.py), applied after the "
                         "other options, e.g. --set densify.min_opacity=0.1 --set optim.feature_lr=0.005; repeatable")
     s.add_argument("--resume", action="store_true", help="continue the run saved in the output folder")
-    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.add_argument("--quiet", action="store_true", help="no progress bar and no information lines (warnings and "
+                                                        "notes stay, and the final JSON)")
     s.add_argument("--view", action="store_true",
                    help="serve the viewer while training (mi-gs view's options below), with the loss curve")
     add_viewer_options(s)
@@ -40,7 +41,7 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     from ..io_utils import check_output_folder
     from ..optim.trainer import TrainingDiverged
-    from ..runs import Stopped, stopping_on_signals, train_run
+    from ..runs import Stopped, quiet, stopping_on_signals, to_stderr, train_run
 
     out = Path(args.output)
     src = existing(args.scene)
@@ -51,7 +52,8 @@ def run(args) -> int:
     try:
         with stopping_on_signals() as stop, _farm(args, src, cfg) as farm:
             result = train_run(src, out, cfg, record, overwrite=args.overwrite, cache=args.cache,
-                               progress=not args.quiet, watch=watch, farm=farm, stop=stop)
+                               progress=not args.quiet, watch=watch, farm=farm, stop=stop,
+                               log=quiet(to_stderr) if args.quiet else to_stderr)
     except TrainingDiverged as e:
         print(f"mi-gs: error: {e}", file=sys.stderr)
         return EXIT_DIVERGED

@@ -25,7 +25,7 @@ def add_parser(sub) -> None:
     groups["scene"].add_argument("--cache", default=None,
                                  help="keep the work (triangulations, a scene's references) in this folder and reuse "
                                       "it (give a run's output folder to reuse its own; default: a temporary folder)")
-    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.add_argument("--quiet", action="store_true", help="no progress bar and no information lines (warnings stay)")
 
 
 def _say(line: str) -> None:
@@ -36,18 +36,21 @@ def run(args) -> int:
     from ..data.scene_file import is_scene_file
     from ..io_utils import check_output_file
     from ..model.point_ply import write_points
-    from ..runs import check_outside_dataset, training_dataset
+    from ..runs import check_outside_dataset, quiet, training_dataset
 
     src, out = existing(args.dataset), Path(args.output)
     if out.suffix.lower() != ".ply":
         raise InputError(f"{out}: a point cloud is written as .ply")
     check_output_file(out)
     check_outside_dataset(src, out)
+    if args.cache is not None:
+        check_outside_dataset(src, args.cache, "--cache")
     if out.exists() and not args.overwrite:
         raise InputError(f"{out}: exists (give --overwrite to replace it)")
     cfg = train_options.new_run_config(args, is_scene_file(src))
     with tempfile.TemporaryDirectory(prefix="mi-gs-points-") as scratch:
-        ds = training_dataset(src, cfg, scratch, cache=args.cache or scratch, progress=not args.quiet, log=_say)
+        ds = training_dataset(src, cfg, scratch, cache=args.cache or scratch, progress=not args.quiet,
+                                log=quiet(_say) if args.quiet else _say)
     if ds.points_xyz is None or not len(ds.points_xyz):
         raise InputError(f"{src}: no initial points (data.random_points is 0 and the dataset has none)")
     write_points(out, ds.points_xyz, ds.points_rgb)

@@ -12,6 +12,44 @@ from pathlib import Path
 EXTRA = "pip install 'mi-gaussians[ray]' (in the source tree: pip install '.[ray]')"
 #: The longest wait for a node to answer the shared-folder check (seconds).
 CHECK_SECONDS = 120.0
+#: The longest wait for the head of a cluster (``--address HOST:PORT``) to accept a connection (seconds).
+CONNECT_SECONDS = 10.0
+
+
+def check_reachable(address: str, seconds: float = CONNECT_SECONDS) -> None:
+    """Something accepts connections at ``address`` (``HOST:PORT``, ``[IPv6]:PORT``; ``auto`` and ``ray://`` URLs are
+    left to Ray) within ``seconds``: ValueError with one line naming the address otherwise. Ray itself keeps retrying
+    an address where nothing listens for many minutes, printing only its own warnings."""
+    import socket
+
+    if address == "auto" or "://" in address:
+        return
+    host, sep, port = address.rpartition(":")
+    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"--address {address}: expected HOST:PORT (the head node's address, e.g. 10.0.0.1:6379), "
+                         "or auto")
+    try:
+        socket.create_connection((host, int(port)), timeout=seconds).close()
+    except socket.timeout:
+        raise ValueError(f"--address {address}: no answer within {seconds:g} s; is the cluster's head running "
+                         "there (ray start --head) and reachable from this machine?") from None
+    except OSError as e:
+        why = e.strerror or type(e).__name__
+        raise ValueError(f"--address {address}: nothing answers there ({why}); start the cluster's head there "
+                         "(ray start --head) or give its address") from None
+
+
+def check_resources(ray, cpus: float, gpus: float, where: str) -> None:
+    """Some alive node of the cluster has ``cpus`` CPUs and ``gpus`` GPUs for one run: ValueError with one line
+    (``where``: the spec, as ``spec.toml: resources``) otherwise, as Ray would keep such a task waiting for ever."""
+    nodes = [n.get("Resources", {}) for n in ray.nodes() if n.get("Alive")]
+    for key, need, name in (("cpus", cpus, "CPU"), ("gpus", gpus, "GPU")):
+        have = max((float(r.get(name, 0.0)) for r in nodes), default=0.0)
+        if need > have:
+            largest = f"the largest node has {have:g}" if have else f"no node of the cluster has a {name}"
+            raise ValueError(f"{where}.{key}: {need:g} per run, but {largest} ({len(nodes)} node"
+                             f"{'s' if len(nodes) != 1 else ''}); lower it or add nodes")
 
 
 def import_ray():

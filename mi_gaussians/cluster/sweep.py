@@ -20,13 +20,17 @@ from .. import run_folder
 from ..config import TrainConfig, setting_items
 from ..io_utils import atomic_write_bytes
 from . import results as results_table
-from .ray_cluster import check_shared_folder, cluster_cpus, connected, setup_worker, task_error_line
+from .ray_cluster import (check_reachable, check_resources, check_shared_folder, cluster_cpus, connected, setup_worker,
+                          task_error_line)
 from .sweep_spec import PlannedRun, SweepSpec
 
 RUNS = "runs"
 CACHE = "cache"          # the runs' shared cache: a scene's references, a dataset's triangulated points
 OLD_CACHE = "references"  # (its name before the triangulated points joined it: a sweep started then goes on with it)
 SPEC = "spec.toml"
+RESULTS = ("results.csv", "results.md")
+#: What a sweep writes at the top of OUT (claimed in OUT's manifest, as a run claims its outputs)
+OUTPUTS = (SPEC, *RESULTS, RUNS, CACHE)
 
 
 def _stderr(line: str) -> None:
@@ -93,6 +97,40 @@ def _check_folders(spec: SweepSpec, out: Path, overwrite: bool) -> None:
                              "run again, or give another output folder")
 
 
+def _earlier_sweep(out: Path) -> set[str]:
+    """The outputs of a sweep of an earlier version of mi-gs (which wrote no manifest) in ``out``, or nothing: its
+    spec.toml beside its runs/ and its cache (or results)."""
+    if not ((out / SPEC).is_file() and (out / RUNS).is_dir()
+            and any((out / n).exists() for n in (CACHE, OLD_CACHE, *RESULTS))):
+        return set()
+    return {n for n in (*OUTPUTS, OLD_CACHE) if (out / n).exists() and not (out / n).is_symlink()}
+
+
+def _check_out(spec: SweepSpec, out: Path, overwrite: bool) -> list[str]:
+    """Before anything is written: ``out`` is new, empty, or a sweep's own (its manifest lists what the sweep wrote;
+    anything else there is the user's and is neither replaced nor removed), lies in none of the datasets, and, with
+    ``overwrite``, no live process holds one of its run folders. Returns what the sweep will claim in ``out``: its
+    outputs, but a spec.toml that is the spec itself (``mi-gs sweep OUT/spec.toml -o OUT``), which stays the user's."""
+    from ..runs import check_outside_dataset
+
+    for run in spec.runs:
+        check_outside_dataset(run.dataset, out)
+    manifest = run_folder.Manifest(out)
+    if not manifest.entries:
+        manifest.entries = _earlier_sweep(out)
+    own = [n for n in OUTPUTS if not (n == SPEC and (out / SPEC).exists() and (out / SPEC).samefile(spec.path))]
+    try:
+        manifest.check_free(own)
+    except ValueError as e:
+        raise ValueError(f"{e} (a sweep writes into a new or empty folder, or into the folder of an earlier sweep)") \
+            from None
+    if overwrite:
+        for run in spec.runs:
+            if (out / RUNS / run.name).is_dir():
+                run_folder.RunLock(out / RUNS / run.name).check_free()
+    return own
+
+
 def cache_folder(out: Path) -> Path:
     """OUT/cache, or OUT/references in a sweep started by a version that named it so (its references are kept)."""
     old = out / OLD_CACHE
@@ -135,13 +173,22 @@ def run_sweep(spec: SweepSpec, out: str | Path, variant: str, address: str | Non
 
     out = Path(out)
     _check_folders(spec, out, overwrite)
+    own = _check_out(spec, out, overwrite)
+    if address:
+        check_reachable(address)
     with run_folder.RunLock(out):                     # (one sweep per output folder)
-        atomic_write_bytes(out / SPEC, spec.path.read_bytes())
+        manifest = run_folder.Manifest(out)
+        manifest.entries = manifest.entries or _earlier_sweep(out)
+        manifest.claim(own)
+        if SPEC in own:
+            atomic_write_bytes(out / SPEC, spec.path.read_bytes())
         if overwrite:
             for run in spec.runs:
-                if (out / RUNS / run.name).is_dir():
-                    run_folder.Manifest(out / RUNS / run.name).remove_outputs()
-            for name in ("results.csv", "results.md"):
+                folder = out / RUNS / run.name
+                if folder.is_dir():
+                    with run_folder.RunLock(folder):  # (an optimize still running there keeps it: FolderBusy)
+                        run_folder.Manifest(folder).remove_outputs()
+            for name in RESULTS:
                 (out / name).unlink(missing_ok=True)
         rows = {}
         for run in spec.runs:
@@ -158,6 +205,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, variant: str, address: str | Non
 
         if todo:
             with connected(address) as ray:
+                check_resources(ray, spec.cpus, spec.gpus, f"{spec.path}: resources")
                 if address:
                     check_shared_folder(ray, out)
                 _prepare(ray, spec, todo, out, variant, progress, log)
@@ -189,6 +237,15 @@ def run_sweep(spec: SweepSpec, out: str | Path, variant: str, address: str | Non
         return [rows[r.name] for r in spec.runs]
 
 
+def lost_line(ray, e, retries: int) -> str:
+    """What happened to a run whose task Ray gave up on, in one line: its node died (the raylet, or the whole
+    machine), or its worker process did, ``retries + 1`` times; either way the same command resumes it."""
+    again = "run the same command again to resume it from its checkpoint"
+    if isinstance(e, (ray.exceptions.LocalRayletDiedError, ray.exceptions.NodeDiedError)):
+        return f"the node running it died ({type(e).__name__}); {again}"
+    return f"its worker process died {retries + 1} times ({type(e).__name__}); {again}"
+
+
 def _collect(ray, ref, run: PlannedRun, retries: int) -> dict:
     """The result row of a finished task."""
     try:
@@ -196,8 +253,7 @@ def _collect(ray, ref, run: PlannedRun, retries: int) -> dict:
     except ray.exceptions.RayTaskError as e:           # (a bug, not the run's own failure: recorded as well)
         return results_table.row(run, "failed", error=task_error_line(e))
     except ray.exceptions.RayError as e:
-        return results_table.row(run, "failed", error=f"its worker died {retries + 1} times "
-                                                      f"({type(e).__name__}); run the sweep again to resume it")
+        return results_table.row(run, "failed", error=lost_line(ray, e, retries))
     if got["status"] != "done":
         return results_table.row(run, "failed", error=got["error"])
     return results_table.row(run, "done", got["metrics"], resumed_at=got["resumed_at"])

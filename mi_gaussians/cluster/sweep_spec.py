@@ -25,9 +25,17 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..config import SettingError, TrainConfig
+from ..data.dataset import detect_layout
 from ..data.scene_file import is_scene_file
 
 KEYS = ("datasets", "iterations", "seeds", "retries", "set", "grid", "resources")
+#: settings a sweep gives every run itself, from its own keys: in [set] or [grid] they would be dropped or mixed
+SWEEP_OWNED = {
+    "seed": "a run's seed comes from the spec's seeds = [...] (give the seeds there)",
+    "data.seed": "a run's seed comes from the spec's seeds = [...] (give the seeds there)",
+    "optim.iterations": "give the number of iterations as the spec's iterations = N, which also scales the schedule "
+                        "(densification, learning rates) as mi-gs optimize --iterations does",
+}
 RESOURCES = ("cpus", "gpus")
 
 
@@ -81,6 +89,8 @@ def read_spec(path: str | Path, cuda: bool = False) -> SweepSpec:
         raise ValueError(f"{path}: is a folder, not a sweep spec (.toml)") from None
     except tomllib.TOMLDecodeError as e:
         raise ValueError(f"{path}: not valid TOML ({e})") from None
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not UTF-8 text (a TOML file is UTF-8; byte {e.start} is not)") from None
 
     def bad(key: str, problem: str) -> ValueError:
         return ValueError(f"{path}: {key}: {problem}")
@@ -110,17 +120,36 @@ def read_spec(path: str | Path, cuda: bool = False) -> SweepSpec:
     for key, _ in settings:
         if key in dict(grid):
             raise bad(f"set.{key}", "is also in [grid] (give it in one of them)")
+    for table, items in (("set", settings), ("grid", grid)):
+        for key, _ in items:
+            if key in SWEEP_OWNED:
+                raise bad(f"{table}.{key}", SWEEP_OWNED[key])
     resources = dict(_table(spec, "resources", bad))
     for key in resources:
         if key not in RESOURCES:
             raise bad(f"resources.{key}", f"not a resource of a run (resources: {', '.join(RESOURCES)})")
     cpus, gpus = resources.get("cpus", 1), resources.get("gpus", 1 if cuda else 0)
-    for key, value, low in (("cpus", cpus, 0), ("gpus", gpus, -1)):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > low:
-            raise bad(f"resources.{key}", f"expected a number {'> 0' if low == 0 else '>= 0'}, got {value!r}")
+    for key, value, zero in (("cpus", cpus, False), ("gpus", gpus, True)):
+        if problem := _resource_problem(value, zero):
+            raise bad(f"resources.{key}", f"{problem}, got {value!r}")
     runs = _plan(path, datasets, labels, iterations, seeds, settings, grid)
     return SweepSpec(path, datasets, labels, iterations, tuple(seeds), settings,
                      tuple((k, tuple(v)) for k, v in grid), float(cpus), float(gpus), int(retries), runs)
+
+
+def _resource_problem(value, zero: bool) -> str | None:
+    """Why ``value`` is no amount of a Ray resource per run (None when it is one): Ray takes a whole number, or a
+    fraction of one in steps of 0.0001 (``zero``: 0 too)."""
+    import math
+
+    what = f"expected a whole number {'>= 0' if zero else '>= 1'}, or a fraction between 0 and 1 in steps of 0.0001"
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        return what
+    if value == 0:
+        return None if zero else what
+    if value < 0 or (value > 1 and value != int(value)) or (value < 1 and abs(value * 1e4 - round(value * 1e4)) > 1e-6):
+        return what
+    return None if value >= 1e-4 else what
 
 
 def _is_int(v) -> bool:
@@ -163,6 +192,11 @@ def _datasets(entries, root: Path, bad) -> tuple[Path, ...]:
                 raise bad(f"datasets[{i}]", f"{p}: not found")
             if not (p.is_dir() or is_scene_file(p)):
                 raise bad(f"datasets[{i}]", f"{p}: neither a dataset folder nor a Mitsuba scene file (.xml)")
+            if p.is_dir():
+                try:
+                    detect_layout(p)
+                except ValueError as e:
+                    raise bad(f"datasets[{i}]", str(e)) from None
             if p.resolve() not in out:
                 out.append(p.resolve())
     return tuple(out)

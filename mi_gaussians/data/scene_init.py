@@ -29,6 +29,7 @@ from ..imwrite import linear_to_srgb, srgb_to_linear, write_png
 from ..io_utils import atomic_path
 from . import pointcloud as _pc
 from .camera import camera_center
+from .triangulate import load_cached_points
 
 INIT_METHODS = SCENE_INITS      # (named in config)
 
@@ -156,9 +157,9 @@ def sfm_points(train_views, work: Path, linear: bool = False,
     from .convert import convert
 
     cached = work / "points.npz"
-    if cached.is_file():
-        with np.load(cached) as z:
-            xyz, rgb = z["xyz"], z["rgb"]
+    z = load_cached_points(cached, (), log or (lambda line: None))
+    if z is not None:
+        xyz, rgb = z["xyz"], z["rgb"]
     else:
         inp = work / "input"
         if inp.exists():

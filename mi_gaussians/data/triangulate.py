@@ -26,6 +26,8 @@ one-line :class:`NoPoints` errors; ``data.init=auto`` then falls back to the ran
 
 from __future__ import annotations
 
+import contextlib
+
 import hashlib
 import json
 import os
@@ -98,6 +100,31 @@ def cache_key(fingerprint: str, cfg: TriangulateConfig, seed: int) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+def load_cached_points(cached: Path, extra: tuple[str, ...], say: Callable[[str], None]) -> dict | None:
+    """The arrays of a points cache we wrote (``xyz``, ``rgb`` and ``extra``), or None when there is none. A damaged
+    one (truncated, emptied, overwritten: not the user's fault) is removed with one line to ``say`` and None is
+    returned, so that it is computed again instead of failing every later run."""
+    import zipfile
+
+    if not cached.is_file():
+        return None
+    try:
+        with np.load(cached, allow_pickle=False) as z:
+            got = {k: np.asarray(z[k]) for k in ("xyz", "rgb", *extra)}
+        xyz, rgb = got["xyz"], got["rgb"]
+        if xyz.ndim != 2 or xyz.shape[1] != 3 or rgb.shape != xyz.shape or not np.all(np.isfinite(xyz)):
+            raise ValueError(f"points of shape {xyz.shape} with colours of shape {rgb.shape}, or not finite")
+        if "seconds" in got:
+            json.loads(str(got["seconds"]))
+        return got
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+        why = " ".join(str(e).split())[:120] or type(e).__name__
+        say(f"note: {cached}: damaged cache of initial points ({why}); computing them again")
+        with contextlib.suppress(OSError):
+            cached.unlink()
+        return None
+
+
 def triangulate(views, color_space: str, work: Path, cfg: TriangulateConfig = TriangulateConfig(), seed: int = 0,
                 where: str = "dataset", log: Callable[[str], None] | None = None) -> Triangulated:
     """Triangulate points from ``views`` (a dataset's training views) in the folder ``work`` (created; its
@@ -105,10 +132,10 @@ def triangulate(views, color_space: str, work: Path, cfg: TriangulateConfig = Tr
     work = Path(work)
     cached = work / "points.npz"
     say = log or (lambda line: None)
-    if cached.is_file():
-        with np.load(cached) as z:
-            result = Triangulated(z["xyz"], z["rgb"], json.loads(str(z["seconds"])), int(z["pairs"]),
-                                  int(z["verified"]), cached=True)
+    z = load_cached_points(cached, ("seconds", "pairs", "verified"), say)
+    if z is not None:
+        result = Triangulated(z["xyz"], z["rgb"], json.loads(str(z["seconds"])), int(z["pairs"]),
+                              int(z["verified"]), cached=True)
         say(f"initial points: {len(result.xyz):,} triangulated earlier, reused from {cached}")
         return result
     cameras = [v.camera for v in views]
