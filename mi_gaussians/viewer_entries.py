@@ -60,8 +60,12 @@ def run_entries(record, out, warn: Callable[[str], None]) -> tuple[list[ViewEntr
         warn(f"the run's dataset cannot be loaded ({e}); viewing without its cameras")
         return [], "srgb", tuple(record.train.data.background)
     kind = record.train.optim.exposure                  # (the file the run wrote: a leftover of another is not read)
-    transforms = (_exposures(Path(out) / EXPOSURE, warn) if kind == "affine"
-                  else _grids(Path(out) / EXPOSURE_GRIDS, warn) if kind == "bilateral" else None)
+    path = Path(out) / (EXPOSURE if kind == "affine" else EXPOSURE_GRIDS)
+    transforms = (_exposures(path, warn) if kind == "affine" else _grids(path, warn) if kind == "bilateral" else None)
+    if transforms is not None and set(transforms) != {v.name for v in ds.train}:
+        warn(f"{path}: does not match the run (its {len(transforms)} views are not the run's {len(ds.train)} training "
+             "views); the views are shown without their exposure")
+        transforms = None
     return (dataset_entries(ds, None if transforms is None else lambda: transforms), ds.color_space,
             tuple(float(b) for b in ds.background))
 
@@ -86,16 +90,19 @@ def _exposures(path, warn) -> dict | None:
 def _grids(path, warn) -> dict | None:
     """The bilateral grids of ``exposure_grids.npz`` (name -> (L, H, W, 3, 4) array), or None (absent, or
     unreadable: warned)."""
+    import zipfile
+
     if not path.is_file():
         return None
     try:
-        with np.load(path) as z:
+        with np.load(path, allow_pickle=False) as z:
             names, grids = [str(n) for n in z["names"]], np.asarray(z["grids"], np.float64)
         if grids.ndim != 6 or grids.shape[0] != len(names) or grids.shape[-2:] != (3, 4):
             raise ValueError(f"grids of shape {grids.shape} for {len(names)} names")
         if not np.all(np.isfinite(grids)):
             raise ValueError("non-finite values")
-    except (OSError, ValueError, KeyError) as e:
-        warn(f"{path}: not readable ({e}); the views are shown without their exposure")
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+        warn(f"{path}: not readable ({' '.join(str(e).split())[:120] or type(e).__name__}); the views are shown "
+             "without their exposure")
         return None
     return dict(zip(names, grids))

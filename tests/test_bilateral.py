@@ -268,5 +268,17 @@ def test_command_line_and_viewer_files(tmp_path):
     raw = np.array(mig.render(g, train[0].camera).rgb)
     want = (np.clip(apply_bilateral(raw, grid), 0, 1) * 255 + 0.5).astype(np.uint8)
     assert np.abs(frame.astype(int) - want.astype(int)).max() <= 1
+    # a damaged grids file (emptied, truncated, random bytes, another run's views) is one line, and no exposure
+    good = (out / "exposure_grids.npz").read_bytes()
+    other = tmp_path / "other.npz"
+    np.savez(other, names=np.array(["elsewhere.png"]), grids=np.zeros((1, *grid.shape)))
+    for damaged, words in ((b"", "not readable"), (good[: len(good) // 2], "not readable"),
+                           (np.random.default_rng(0).bytes(999), "not readable"),
+                           (other.read_bytes(), "does not match the run")):
+        (out / "exposure_grids.npz").write_bytes(damaged)
+        said = []
+        entries, _, _ = run_entries(RunRecord.read(out, ""), out, warn=said.append)
+        assert len(said) == 1 and said[0].startswith(f"{out / 'exposure_grids.npz'}: {words}"), said
+        assert "\n" not in said[0] and all(e.exposure is None for e in entries)
     r = run("optimize", data, "-o", tmp_path / "bad", "--exposure", "bilateral", "--set", "optim.exposure_grid=1,3,5")
     assert r.returncode == 2 and "optim.exposure_grid" in r.stderr, r.stderr
