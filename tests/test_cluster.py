@@ -141,6 +141,49 @@ def test_a_killed_worker_is_retried_and_resumes_from_its_checkpoint(ray_cluster,
     assert json.loads((folder / "metrics.json").read_text())["iterations"] == 800
 
 
+def test_a_sweep_stopped_by_a_signal_checkpoints_its_runs_and_resumes(ray_cluster, larger, tmp_path):
+    """SIGTERM to the sweep's process group (as Slurm and Kubernetes send it): the driver asks the running run to
+    checkpoint and stop, exits 143 with one line within the bound, no worker trains on, and the same command resumes
+    the run from that checkpoint."""
+    from mi_gaussians.cluster.sweep import STOP_SECONDS
+
+    spec = write_spec(tmp_path / "spec.toml", KILL_SPEC.format(data=larger).replace("= 800", "= 400"))
+    out = tmp_path / "out"
+    log = open(tmp_path / "sweep.stderr", "wb")
+    proc = subprocess.Popen([EXE, "sweep", str(spec), "-o", str(out), "--address", ray_cluster, "--quiet"],
+                            cwd=tempfile.gettempdir(), stdout=subprocess.DEVNULL, stderr=log, start_new_session=True)
+    log.close()
+    folder = out / "runs" / "synth-s0"
+    try:
+        deadline = time.monotonic() + 240
+        while checkpoint_step(folder) < 100:
+            assert time.monotonic() < deadline, "the run did not checkpoint in time"
+            assert proc.poll() is None, (tmp_path / "sweep.stderr").read_text()[-2000:]
+            time.sleep(0.05)
+        os.killpg(proc.pid, signal.SIGTERM)
+        t0 = time.monotonic()
+        proc.wait(timeout=STOP_SECONDS + 60)
+        assert time.monotonic() - t0 < STOP_SECONDS + 30
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    err = (tmp_path / "sweep.stderr").read_text()
+    assert proc.returncode == 143, err[-2000:]
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert lines[-1].startswith("mi-gs: sweep stopped by SIGTERM: 1 run stopped at a checkpoint"), err[-2000:]
+    assert "Traceback" not in err and "\x1b[" not in err                       # (no colour codes, no stack)
+    (row,) = rows(out)
+    assert row["status"] == "stopped" and "run the same command again" in row["error"]
+    stopped_at = checkpoint_step(folder)
+    assert 100 <= stopped_at < 400 and f"stopped at iteration {stopped_at}" in row["error"]
+    time.sleep(3)                                                 # no worker trains on
+    assert checkpoint_step(folder) == stopped_at and not (folder / "metrics.json").exists()
+    again = run("sweep", spec, "-o", out, "--address", ray_cluster, "--quiet")
+    assert again.returncode == 0, again.stderr
+    (row,) = rows(out)
+    assert row["status"] == "done" and int(row["resumed_at"]) == stopped_at
+
+
 def test_a_run_failing_for_its_own_reason_is_recorded_and_the_others_finish(ray_cluster, tmp_path):
     import shutil
 

@@ -18,21 +18,32 @@ def add_parser(sub) -> None:
     s.add_argument("--address", default=None,
                    help="join this Ray cluster (e.g. HEAD:6379, or auto); its nodes must see the output folder at the "
                         "same path (default: start a local one on this machine)")
-    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.add_argument("--quiet", action="store_true", help="no progress bar and no information lines (warnings stay)")
 
 
 def run(args) -> int:
     import mitsuba as mi
 
-    from ..cluster.sweep import run_sweep
+    from ..cluster.sweep import SweepStopped, run_sweep
+    from ..runs import quiet, to_stderr
     from ..cluster.sweep_spec import read_spec
     from ..io_utils import check_output_folder
 
     spec = read_spec(existing(args.spec), cuda=mi.variant().startswith("cuda"))
     out = Path(args.output)
     check_output_folder(out)
-    rows = run_sweep(spec, out, mi.variant(), address=args.address, overwrite=args.overwrite,
-                     progress=not args.quiet)
+    try:
+        rows = run_sweep(spec, out, mi.variant(), address=args.address, overwrite=args.overwrite,
+                         progress=not args.quiet, log=quiet(to_stderr) if args.quiet else to_stderr)
+    except SweepStopped as e:
+        import signal
+        import sys
+
+        name = signal.Signals(e.signum).name
+        n = len(e.stopped)
+        print(f"mi-gs: sweep stopped by {name}: {n} run{'s' if n != 1 else ''} stopped at a checkpoint "
+              f"({out / 'results.csv'}); the same command resumes", file=sys.stderr, flush=True)
+        return 128 + e.signum
     failed = [r for r in rows if r["status"] != "done"]
     print((out / "results.md").read_text(), flush=True)
     print(f"{len(rows) - len(failed)} of {len(rows)} runs done -> {out / 'results.csv'}", flush=True)

@@ -11,6 +11,7 @@ cluster's nodes must see OUT at the same path (checked before anything starts).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import sys
 from pathlib import Path
@@ -65,8 +66,16 @@ def train_task(run: PlannedRun, folder: str, cache: str, variant: str) -> dict:
     from ..errors import one_line
     from ..runs import train_run
 
+    import threading
+
+    from ..runs import Stopped, stopping_on_signals
+
     setup_worker(variant)
     folder = Path(folder)
+    # Ray cancels a running task (the sweep stopped by a signal) by interrupting its main thread as a SIGINT would:
+    # with the run's signal handling, the run then finishes its iteration and writes a checkpoint
+    stopping = stopping_on_signals() if threading.current_thread() is threading.main_thread() else \
+        contextlib.nullcontext()
     try:
         record = None
         if run_folder.holds_run(folder):
@@ -74,8 +83,12 @@ def train_task(run: PlannedRun, folder: str, cache: str, variant: str) -> dict:
             differ = differences(record.train, run.config)
             if differ:
                 raise ValueError(f"{folder}: holds a run with other settings ({'; '.join(differ[:3])})")
-        result = train_run(run.dataset, folder, run.config, record, cache=cache, progress=False, log=None)
+        with stopping as stop:
+            result = train_run(run.dataset, folder, run.config, record, cache=cache, progress=False, log=None,
+                               stop=stop)
         return {"status": "done", "metrics": result.metrics, "resumed_at": result.resumed_from}
+    except Stopped as e:
+        return {"status": "stopped", "step": e.step}
     except (ValueError, OSError, RuntimeError) as e:         # (TrainingDiverged is a RuntimeError)
         return {"status": "failed", "error": one_line(e)}
 
@@ -204,11 +217,14 @@ def run_sweep(spec: SweepSpec, out: str | Path, variant: str, address: str | Non
                                 f"Sweep {spec.path.name}")
 
         if todo:
-            with connected(address) as ray:
+            # (after Ray's start: its core puts a handler of its own on SIGTERM that prints a stack and kills the driver)
+            with connected(address) as ray, _stop_requests() as stop:
                 check_resources(ray, spec.cpus, spec.gpus, f"{spec.path}: resources")
                 if address:
                     check_shared_folder(ray, out)
                 _prepare(ray, spec, todo, out, variant, progress, log)
+                if stop.signum is not None:
+                    raise SweepStopped(stop.signum, [])
                 task = ray.remote(max_calls=1)(train_task).options(num_cpus=spec.cpus, num_gpus=spec.gpus,
                                                                   max_retries=spec.retries, retry_exceptions=False)
                 cache = str(cache_folder(out))
@@ -217,15 +233,15 @@ def run_sweep(spec: SweepSpec, out: str | Path, variant: str, address: str | Non
                            dynamic_ncols=True)
                 pending = list(refs)
                 try:
-                    while pending:
-                        ready, pending = ray.wait(pending, num_returns=1)
+                    while pending and stop.signum is None:
+                        ready, pending = ray.wait(pending, num_returns=1, timeout=WAIT_STEP)
                         for ref in ready:
                             run = refs[ref]
                             rows[run.name] = _collect(ray, ref, run, spec.retries)
                             r = rows[run.name]
                             psnr = "n/a" if r["psnr"] is None else f"{r['psnr']:.2f}"
                             line = (f"{run.name}: PSNR {psnr}" if r["status"] == "done" else
-                                    f"{run.name}: failed: {r['error']}")
+                                    f"{run.name}: {r['status']}: {r['error']}")
                             bar.update(1)
                             if r["status"] == "done":
                                 bar.set_postfix(PSNR=psnr, refresh=False)
@@ -233,8 +249,78 @@ def run_sweep(spec: SweepSpec, out: str | Path, variant: str, address: str | Non
                             write()
                 finally:
                     bar.close()
+                if stop.signum is not None:
+                    _stop_runs(ray, refs, pending, rows, stop.signum, spec.retries)
+                    write()
+                    raise SweepStopped(stop.signum, [r for r in rows.values() if r["status"] == "stopped"])
         write()
         return [rows[r.name] for r in spec.runs]
+
+
+#: How often the driver looks up from waiting for the runs (a signal is acted on within this; seconds)
+WAIT_STEP = 1.0
+#: The longest wait, after a stop signal, for the running runs to finish their iteration and checkpoint (seconds);
+#: a run still going then is ended (it resumes from its previous checkpoint)
+STOP_SECONDS = 60.0
+
+
+class SweepStopped(Exception):
+    """The sweep was stopped by a signal: the running runs were asked to checkpoint and stop (``stopped``: their
+    result rows); the same command resumes them."""
+
+    def __init__(self, signum: int, stopped: list[dict]):
+        self.signum, self.stopped = signum, stopped
+        super().__init__(f"stopped by signal {signum}")
+
+
+@contextlib.contextmanager
+def _stop_requests():
+    """While the sweep runs, SIGTERM, SIGINT and SIGHUP (Slurm, Kubernetes, Ctrl-C, a closed terminal; also sent to
+    the whole process group) ask it to stop: noted for the wait loop, which stops the runs; before the runs start it
+    raises :class:`SweepStopped` at once. A second signal ends the process (exit 128 + signal)."""
+    import os
+    import signal
+    from types import SimpleNamespace
+
+    from ..runs import STOP_SIGNALS
+
+    state = SimpleNamespace(signum=None)
+
+    def handler(signum, frame):
+        if state.signum is not None:
+            os._exit(128 + signum)
+        state.signum = signum
+
+    # pycolmap (glog), first imported later by a triangulation, would put its own SIGTERM handler (a stack trace,
+    # then death) over ours, as Ray's core does when it starts: both are in place before ours (see runs.py)
+    import pycolmap  # noqa: F401
+
+    signums = [getattr(signal, name) for name in STOP_SIGNALS if hasattr(signal, name)]
+    before = {s: signal.signal(s, handler) for s in signums}
+    try:
+        yield state
+    finally:
+        for s, h in before.items():
+            signal.signal(s, h)
+
+
+def _stop_runs(ray, refs: dict, pending: list, rows: dict, signum: int, retries: int) -> None:
+    """Ask the running runs to checkpoint and stop (Ray interrupts each task as a SIGINT would; the run finishes its
+    iteration and writes its checkpoint), wait for them at most :data:`STOP_SECONDS`, end those still going, and record
+    every run's row (finished meanwhile, stopped, or not started)."""
+    import signal
+
+    for ref in pending:
+        ray.cancel(ref, force=False)
+    ready, late = ray.wait(pending, num_returns=len(pending), timeout=STOP_SECONDS) if pending else ([], [])
+    for ref in late:
+        ray.cancel(ref, force=True)
+    name = signal.Signals(signum).name
+    for ref in pending:
+        run = refs[ref]
+        rows[run.name] = (_collect(ray, ref, run, retries) if ref in ready else
+                          results_table.row(run, "stopped", error=f"stopped by {name} (ended after {STOP_SECONDS:g} s); "
+                                                                  "run the same command again to resume it"))
 
 
 def lost_line(ray, e, retries: int) -> str:
@@ -250,10 +336,15 @@ def _collect(ray, ref, run: PlannedRun, retries: int) -> dict:
     """The result row of a finished task."""
     try:
         got = ray.get(ref)
+    except ray.exceptions.TaskCancelledError:           # (the sweep stopped it: see _stop_runs)
+        return results_table.row(run, "stopped", error="stopped before it began; run the same command again")
     except ray.exceptions.RayTaskError as e:           # (a bug, not the run's own failure: recorded as well)
         return results_table.row(run, "failed", error=task_error_line(e))
     except ray.exceptions.RayError as e:
         return results_table.row(run, "failed", error=lost_line(ray, e, retries))
+    if got["status"] == "stopped":
+        return results_table.row(run, "stopped", error=f"stopped at iteration {got['step']}; run the same command "
+                                                        "again to resume it")
     if got["status"] != "done":
         return results_table.row(run, "failed", error=got["error"])
     return results_table.row(run, "done", got["metrics"], resumed_at=got["resumed_at"])
