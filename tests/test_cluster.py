@@ -378,23 +378,23 @@ def test_a_sweep_refuses_a_folder_of_the_users(tmp_path):
 
 
 def test_a_sweep_folder_may_hold_its_own_spec_and_an_earlier_sweeps_outputs(tmp_path):
-    from mi_gaussians.cluster.sweep import OUTPUTS, SPEC, _check_out
+    from mi_gaussians.cluster.sweep import OUTPUTS, SPEC, check_out
 
     out = tmp_path / "sweep"
     spec_path = write_spec(out / "spec.toml", f'datasets = ["{DATA / "tiny_blender"}"]\niterations = 5\n')
     spec = read_spec(spec_path)
     # mi-gs sweep OUT/spec.toml -o OUT: the spec stays the user's (not claimed, not rewritten), the rest is the sweep's
-    assert _check_out(spec, out, overwrite=False) == [n for n in OUTPUTS if n != SPEC]
+    assert check_out(spec, out, overwrite=False) == [n for n in OUTPUTS if n != SPEC]
     # a sweep of an earlier version (no manifest): its spec.toml, runs/ and cache/ are its own
     old = tmp_path / "old"
     write_spec(old / "spec.toml", "# the spec of that sweep\n")
     (old / "runs").mkdir()
     (old / "cache").mkdir()
-    assert _check_out(spec, old, overwrite=False) == list(OUTPUTS)
+    assert check_out(spec, old, overwrite=False) == list(OUTPUTS)
     # ... but not without its runs: then spec.toml is somebody's file
     (old / "runs").rmdir()
     with pytest.raises(ValueError, match="exists and was not written by mi-gs"):
-        _check_out(spec, old, overwrite=False)
+        check_out(spec, old, overwrite=False)
 
 
 def test_a_sweep_output_inside_a_dataset_is_refused(tmp_path):

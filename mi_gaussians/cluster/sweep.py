@@ -119,7 +119,7 @@ def _earlier_sweep(out: Path) -> set[str]:
     return {n for n in (*OUTPUTS, OLD_CACHE) if (out / n).exists() and not (out / n).is_symlink()}
 
 
-def _check_out(spec: SweepSpec, out: Path, overwrite: bool) -> list[str]:
+def check_out(spec: SweepSpec, out: Path, overwrite: bool) -> list[str]:
     """Before anything is written: ``out`` is new, empty, or a sweep's own (its manifest lists what the sweep wrote;
     anything else there is the user's and is neither replaced nor removed), lies in none of the datasets, and, with
     ``overwrite``, no live process holds one of its run folders. Returns what the sweep will claim in ``out``: its
@@ -186,7 +186,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, variant: str, address: str | Non
 
     out = Path(out)
     _check_folders(spec, out, overwrite)
-    own = _check_out(spec, out, overwrite)
+    own = check_out(spec, out, overwrite)
     if address:
         check_reachable(address)
     with run_folder.RunLock(out):                     # (one sweep per output folder)
