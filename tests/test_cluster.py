@@ -70,7 +70,7 @@ def test_sweep_of_two_datasets_by_two_settings_and_again(ray_cluster, tmp_path):
     assert e.returncode == 0, e.stderr
     # the same sweep again: every run is finished, nothing is trained or written
     before = files(out / "runs")
-    again = run("sweep", spec, "-o", out, "--address", ray_cluster, "--quiet")
+    again = run("sweep", spec, "-o", out, "--address", ray_cluster)        # (not --quiet: the line below is information)
     assert again.returncode == 0, again.stderr
     assert "4 of 4 runs finished earlier" in again.stderr and files(out / "runs") == before
     assert [x["psnr"] for x in rows(out)] == [x["psnr"] for x in got]
@@ -199,6 +199,8 @@ def test_a_run_failing_for_its_own_reason_is_recorded_and_the_others_finish(ray_
     bad, good = rows(out)
     assert bad["status"] == "failed" and image.name in bad["error"] and "\n" not in bad["error"]
     assert good["status"] == "done" and "failed" in (out / "results.md").read_text()
+    said = [ln for ln in r.stderr.splitlines() if ln.strip()]      # --quiet: the failure is said, nothing else
+    assert len(said) == 1 and said[0].startswith(f"mi-gs: warning: {bad['run']}: failed: "), r.stderr
 
 
 def test_distributed_references_equal_single_process_ones(ray_cluster, tmp_path):

@@ -240,8 +240,8 @@ def run_sweep(spec: SweepSpec, out: str | Path, variant: str, address: str | Non
                             rows[run.name] = _collect(ray, ref, run, spec.retries)
                             r = rows[run.name]
                             psnr = "n/a" if r["psnr"] is None else f"{r['psnr']:.2f}"
-                            line = (f"{run.name}: PSNR {psnr}" if r["status"] == "done" else
-                                    f"{run.name}: {r['status']}: {r['error']}")
+                            line = (f"{run.name}: PSNR {psnr}" if r["status"] == "done" else   # (kept by --quiet:)
+                                    f"mi-gs: warning: {run.name}: {r['status']}: {r['error']}")
                             bar.update(1)
                             if r["status"] == "done":
                                 bar.set_postfix(PSNR=psnr, refresh=False)
