@@ -145,12 +145,14 @@ def test_a_sweep_stopped_by_a_signal_checkpoints_its_runs_and_resumes(ray_cluste
     """SIGTERM to the sweep's process group (as Slurm and Kubernetes send it): the driver asks the running run to
     checkpoint and stop, exits 143 with one line within the bound, no worker trains on, and the same command resumes
     the run from that checkpoint."""
-    from mi_gaussians.cluster.sweep import STOP_SECONDS
+    from mi_gaussians.run_folder import RunLock
 
+    stop_s = 40
     spec = write_spec(tmp_path / "spec.toml", KILL_SPEC.format(data=larger).replace("= 800", "= 400"))
     out = tmp_path / "out"
     log = open(tmp_path / "sweep.stderr", "wb")
-    proc = subprocess.Popen([EXE, "sweep", str(spec), "-o", str(out), "--address", ray_cluster, "--quiet"],
+    proc = subprocess.Popen([EXE, "sweep", str(spec), "-o", str(out), "--address", ray_cluster, "--quiet",
+                             "--stop-timeout", str(stop_s)],
                             cwd=tempfile.gettempdir(), stdout=subprocess.DEVNULL, stderr=log, start_new_session=True)
     log.close()
     folder = out / "runs" / "synth-s0"
@@ -162,8 +164,8 @@ def test_a_sweep_stopped_by_a_signal_checkpoints_its_runs_and_resumes(ray_cluste
             time.sleep(0.05)
         os.killpg(proc.pid, signal.SIGTERM)
         t0 = time.monotonic()
-        proc.wait(timeout=STOP_SECONDS + 60)
-        assert time.monotonic() - t0 < STOP_SECONDS + 30
+        proc.wait(timeout=stop_s + 60)
+        assert time.monotonic() - t0 < stop_s + 30
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
@@ -176,7 +178,7 @@ def test_a_sweep_stopped_by_a_signal_checkpoints_its_runs_and_resumes(ray_cluste
     assert row["status"] == "stopped" and "run the same command again" in row["error"]
     stopped_at = checkpoint_step(folder)
     assert 100 <= stopped_at < 400 and f"stopped at iteration {stopped_at}" in row["error"]
-    time.sleep(3)                                                 # no worker trains on
+    RunLock(folder).check_free()                                  # no worker trains on (it would hold the lock)
     assert checkpoint_step(folder) == stopped_at and not (folder / "metrics.json").exists()
     again = run("sweep", spec, "-o", out, "--address", ray_cluster, "--quiet")
     assert again.returncode == 0, again.stderr
@@ -452,19 +454,26 @@ def test_an_address_where_nothing_listens_is_one_line_within_the_bound(tmp_path)
     """Ray retried such an address for 10 minutes and more, printing only its own warnings."""
     import socket
 
-    from mi_gaussians.cluster.ray_cluster import CONNECT_SECONDS
+    connect_s = 5
 
     with socket.socket() as s:                  # a port that nothing listens on (bound, then closed)
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     spec = write_spec(tmp_path / "s.toml", f'datasets = ["{DATA / "tiny_blender"}"]\niterations = 5\n')
     t0 = time.monotonic()
-    r = run("sweep", spec, "-o", tmp_path / "out", "--address", f"127.0.0.1:{port}")
-    assert time.monotonic() - t0 < CONNECT_SECONDS + 60
+    r = run("sweep", spec, "-o", tmp_path / "out", "--address", f"127.0.0.1:{port}", "--connect-timeout", connect_s)
+    assert time.monotonic() - t0 < connect_s + 60
     assert_one_line_error(r, f"--address 127.0.0.1:{port}: nothing answers there")
     assert not (tmp_path / "out").exists()
     for bad in ("nowhere", "host:port", "[::1]:99999"):
         assert_one_line_error(run("sweep", spec, "-o", tmp_path / "out", "--address", bad), "expected HOST:PORT")
+    for bad in ("0", "-1", "inf", "nan", "soon"):
+        assert_one_line_error(run("sweep", spec, "-o", tmp_path / "out", "--stop-timeout", bad), "--stop-timeout")
+    from mi_gaussians.cluster.ray_cluster import Waits
+
+    assert Waits().connect == 30.0
+    with pytest.raises(ValueError, match="waits.stop: expected a positive number of seconds"):
+        Waits(stop=0)
 
 
 def test_resources_no_node_has_are_refused_not_waited_for(ray_cluster, tmp_path):

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .args import add_output, existing
+from ..cluster.ray_cluster import Waits
+from .args import add_output, existing, positive_float
 from .errors import EXIT_RUNS_FAILED
 
 
@@ -18,6 +19,15 @@ def add_parser(sub) -> None:
     s.add_argument("--address", default=None,
                    help="join this Ray cluster (e.g. HEAD:6379, or auto); its nodes must see the output folder at the "
                         "same path (default: start a local one on this machine)")
+    w = Waits()
+    s.add_argument("--connect-timeout", type=positive_float, default=w.connect, metavar="SECONDS",
+                   help=f"the longest wait for the cluster at --address to answer (default {w.connect:g})")
+    s.add_argument("--check-timeout", type=positive_float, default=w.shared_folder, metavar="SECONDS",
+                   help=f"the longest wait for every node to answer the shared-folder check (default "
+                        f"{w.shared_folder:g})")
+    s.add_argument("--stop-timeout", type=positive_float, default=w.stop, metavar="SECONDS",
+                   help=f"after SIGTERM / SIGHUP / Ctrl-C, the longest wait for the running runs to checkpoint; those "
+                        f"still going are then ended and resume from their previous checkpoint (default {w.stop:g})")
     s.add_argument("--quiet", action="store_true", help="no progress bar and no information lines (warnings stay)")
 
 
@@ -34,7 +44,8 @@ def run(args) -> int:
     check_output_folder(out)
     try:
         rows = run_sweep(spec, out, mi.variant(), address=args.address, overwrite=args.overwrite,
-                         progress=not args.quiet, log=quiet(to_stderr) if args.quiet else to_stderr)
+                         progress=not args.quiet, log=quiet(to_stderr) if args.quiet else to_stderr,
+                         waits=Waits(args.connect_timeout, args.check_timeout, args.stop_timeout))
     except SweepStopped as e:
         import signal
         import sys

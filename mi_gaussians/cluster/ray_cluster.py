@@ -6,17 +6,30 @@ from __future__ import annotations
 import contextlib
 import os
 import uuid
+from dataclasses import dataclass
 from pathlib import Path
 
 #: How to install what this module needs.
 EXTRA = "pip install 'mi-gaussians[ray]' (in the source tree: pip install '.[ray]')"
-#: The longest wait for a node to answer the shared-folder check (seconds).
-CHECK_SECONDS = 120.0
-#: The longest wait for the head of a cluster (``--address HOST:PORT``) to accept a connection (seconds).
-CONNECT_SECONDS = 10.0
 
 
-def check_reachable(address: str, seconds: float = CONNECT_SECONDS) -> None:
+@dataclass(frozen=True)
+class Waits:
+    """The longest waits on a cluster (seconds): every one is bounded and, when it runs out, says what it waited for.
+    ``mi-gs sweep --connect-timeout / --check-timeout / --stop-timeout`` set them."""
+
+    connect: float = 30.0         # the head of a cluster (--address HOST:PORT) to accept a connection
+    shared_folder: float = 120.0  # every node to answer the check that it sees the output folder
+    stop: float = 60.0            # the running runs, after a stop signal, to finish their iteration and checkpoint
+
+    def __post_init__(self):
+        for name in ("connect", "shared_folder", "stop"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < float("inf"):
+                raise ValueError(f"waits.{name}: expected a positive number of seconds, got {v!r}")
+
+
+def check_reachable(address: str, seconds: float = Waits.connect) -> None:
     """Something accepts connections at ``address`` (``HOST:PORT``, ``[IPv6]:PORT``; ``auto`` and ``ray://`` URLs are
     left to Ray) within ``seconds``: ValueError with one line naming the address otherwise. Ray itself keeps retrying
     an address where nothing listens for many minutes, printing only its own warnings."""
@@ -32,8 +45,8 @@ def check_reachable(address: str, seconds: float = CONNECT_SECONDS) -> None:
     try:
         socket.create_connection((host, int(port)), timeout=seconds).close()
     except socket.timeout:
-        raise ValueError(f"--address {address}: no answer within {seconds:g} s; is the cluster's head running "
-                         "there (ray start --head) and reachable from this machine?") from None
+        raise ValueError(f"--address {address}: no answer within {seconds:g} s (--connect-timeout); is the cluster's "
+                         "head running there (ray start --head) and reachable from this machine?") from None
     except OSError as e:
         why = e.strerror or type(e).__name__
         raise ValueError(f"--address {address}: nothing answers there ({why}); start the cluster's head there "
@@ -99,9 +112,9 @@ def _sees(path: str, token: str) -> tuple[bool, str]:
         return False, socket.gethostname()
 
 
-def check_shared_folder(ray, folder: Path) -> None:
+def check_shared_folder(ray, folder: Path, seconds: float = Waits.shared_folder) -> None:
     """Every alive node of the cluster sees ``folder`` (the same file system as this driver): ValueError with one
-    line naming the nodes that do not (or do not answer within :data:`CHECK_SECONDS`)."""
+    line naming the nodes that do not (or do not answer within ``seconds``)."""
     from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
     folder = Path(folder).resolve()
@@ -114,11 +127,11 @@ def check_shared_folder(ray, folder: Path) -> None:
         sees = ray.remote(num_cpus=0, max_retries=0)(_sees)
         refs = {n["NodeManagerAddress"]: sees.options(scheduling_strategy=NodeAffinitySchedulingStrategy(
             n["NodeID"], soft=False)).remote(str(token_file), token) for n in nodes}
-        ready, _ = ray.wait(list(refs.values()), num_returns=len(refs), timeout=CHECK_SECONDS)
+        ready, _ = ray.wait(list(refs.values()), num_returns=len(refs), timeout=seconds)
         blind = []
         for address, ref in refs.items():
             if ref not in ready:
-                blind.append(f"{address} (no answer in {CHECK_SECONDS:g} s)")
+                blind.append(f"{address} (no answer in {seconds:g} s; --check-timeout)")
                 continue
             try:
                 ok, host = ray.get(ref)

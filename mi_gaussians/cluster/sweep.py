@@ -21,8 +21,8 @@ from .. import run_folder
 from ..config import TrainConfig, setting_items
 from ..io_utils import atomic_write_bytes
 from . import results as results_table
-from .ray_cluster import (check_reachable, check_resources, check_shared_folder, cluster_cpus, connected, setup_worker,
-                          task_error_line)
+from .ray_cluster import (Waits, check_reachable, check_resources, check_shared_folder, cluster_cpus, connected,
+                          setup_worker, task_error_line)
 from .sweep_spec import PlannedRun, SweepSpec
 
 RUNS = "runs"
@@ -179,16 +179,16 @@ def _prepare(ray, spec: SweepSpec, runs, out: Path, variant: str, progress: bool
 
 
 def run_sweep(spec: SweepSpec, out: str | Path, variant: str, address: str | None = None, overwrite: bool = False,
-              progress: bool = True, log: Callable[[str], None] = _stderr) -> list[dict]:
+              progress: bool = True, log: Callable[[str], None] = _stderr, waits: Waits = Waits()) -> list[dict]:
     """Every run of ``spec`` in ``out`` (see the module docstring); returns the result rows in the spec's order
-    (also written to OUT/results.csv and OUT/results.md)."""
+    (also written to OUT/results.csv and OUT/results.md). ``waits``: how long to wait for the cluster."""
     from tqdm import tqdm
 
     out = Path(out)
     _check_folders(spec, out, overwrite)
     own = check_out(spec, out, overwrite)
     if address:
-        check_reachable(address)
+        check_reachable(address, waits.connect)
     with run_folder.RunLock(out):                     # (one sweep per output folder)
         manifest = run_folder.Manifest(out)
         manifest.entries = manifest.entries or _earlier_sweep(out)
@@ -221,7 +221,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, variant: str, address: str | Non
             with connected(address) as ray, _stop_requests() as stop:
                 check_resources(ray, spec.cpus, spec.gpus, f"{spec.path}: resources")
                 if address:
-                    check_shared_folder(ray, out)
+                    check_shared_folder(ray, out, waits.shared_folder)
                 _prepare(ray, spec, todo, out, variant, progress, log)
                 if stop.signum is not None:
                     raise SweepStopped(stop.signum, [])
@@ -250,7 +250,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, variant: str, address: str | Non
                 finally:
                     bar.close()
                 if stop.signum is not None:
-                    _stop_runs(ray, refs, pending, rows, stop.signum, spec.retries)
+                    _stop_runs(ray, refs, pending, rows, stop.signum, spec.retries, waits.stop)
                     write()
                     raise SweepStopped(stop.signum, [r for r in rows.values() if r["status"] == "stopped"])
         write()
@@ -259,9 +259,6 @@ def run_sweep(spec: SweepSpec, out: str | Path, variant: str, address: str | Non
 
 #: How often the driver looks up from waiting for the runs (a signal is acted on within this; seconds)
 WAIT_STEP = 1.0
-#: The longest wait, after a stop signal, for the running runs to finish their iteration and checkpoint (seconds);
-#: a run still going then is ended (it resumes from its previous checkpoint)
-STOP_SECONDS = 60.0
 
 
 class SweepStopped(Exception):
@@ -304,22 +301,23 @@ def _stop_requests():
             signal.signal(s, h)
 
 
-def _stop_runs(ray, refs: dict, pending: list, rows: dict, signum: int, retries: int) -> None:
+def _stop_runs(ray, refs: dict, pending: list, rows: dict, signum: int, retries: int, seconds: float) -> None:
     """Ask the running runs to checkpoint and stop (Ray interrupts each task as a SIGINT would; the run finishes its
-    iteration and writes its checkpoint), wait for them at most :data:`STOP_SECONDS`, end those still going, and record
+    iteration and writes its checkpoint), wait for them at most ``seconds``, end those still going (each resumes from
+    its previous checkpoint), and record
     every run's row (finished meanwhile, stopped, or not started)."""
     import signal
 
     for ref in pending:
         ray.cancel(ref, force=False)
-    ready, late = ray.wait(pending, num_returns=len(pending), timeout=STOP_SECONDS) if pending else ([], [])
+    ready, late = ray.wait(pending, num_returns=len(pending), timeout=seconds) if pending else ([], [])
     for ref in late:
         ray.cancel(ref, force=True)
     name = signal.Signals(signum).name
     for ref in pending:
         run = refs[ref]
         rows[run.name] = (_collect(ray, ref, run, retries) if ref in ready else
-                          results_table.row(run, "stopped", error=f"stopped by {name} (ended after {STOP_SECONDS:g} s); "
+                          results_table.row(run, "stopped", error=f"stopped by {name} (ended after {seconds:g} s); "
                                                                   "run the same command again to resume it"))
 
 
