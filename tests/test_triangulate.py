@@ -221,9 +221,8 @@ def test_points_command_and_viewing_a_point_cloud(sphere, tmp_path):
 
 
 def test_a_run_starts_from_the_triangulated_points(sphere, tmp_path):
-    r = run("optimize", sphere, "-o", tmp_path / "run", "--iterations", 30, "--background", "0", "--quiet",
-            "--eval-every", 0)
-    assert r.returncode == 0, r.stderr
+    r = run("optimize", sphere, "-o", tmp_path / "run", "--iterations", 30, "--background", "0", "--eval-every", 0)
+    assert r.returncode == 0, r.stderr                               # (not --quiet: the line below is information)
     assert "triangulated from the 14 posed training images" in r.stderr
     manifest = json.loads((tmp_path / "run" / ".mi-gs-manifest.json").read_text())["created"]
     assert "points" in manifest and list((tmp_path / "run" / "points").glob("*/points.npz"))
@@ -248,8 +247,7 @@ def test_a_layouts_own_points_are_left_out_when_another_init_is_asked_for(tmp_pa
     for init in ("cube", "frustum"):
         ds = training_dataset(colmap, _cfg(f"data.init={init}", "data.random_points=500"), tmp_path / init, log=None)
         assert ds.points_from == init and len(ds.points_xyz) == 500 != len(own.points_xyz)
-    r = run("optimize", colmap, "-o", tmp_path / "run", "--iterations", 20, "--init", "frustum", "--quiet",
-            "--eval-every", 0)
-    assert r.returncode == 0 and "random (frustum)" in r.stderr, r.stderr
+    r = run("optimize", colmap, "-o", tmp_path / "run", "--iterations", 20, "--init", "frustum", "--eval-every", 0)
+    assert r.returncode == 0 and "random (frustum)" in r.stderr, r.stderr        # (information: not --quiet)
     r = run("optimize", colmap, "-o", tmp_path / "run", "--resume", "--iterations", 25, "--quiet")
     assert r.returncode == 0, r.stderr
