@@ -467,6 +467,13 @@ def test_an_address_where_nothing_listens_is_one_line_within_the_bound(tmp_path)
     assert not (tmp_path / "out").exists()
     for bad in ("nowhere", "host:port", "[::1]:99999"):
         assert_one_line_error(run("sweep", spec, "-o", tmp_path / "out", "--address", bad), "expected HOST:PORT")
+    # mi-gs optimize --workers N --address joins a cluster the same way
+    scene = ROOT / "scenes" / "objects.xml"
+    t0 = time.monotonic()
+    r = run("optimize", scene, "-o", tmp_path / "run", "--workers", 2, "--address", f"127.0.0.1:{port}")
+    assert time.monotonic() - t0 < 90
+    assert_one_line_error(r, f"--address 127.0.0.1:{port}: nothing answers there")
+    assert not (tmp_path / "run").exists()
     for bad in ("0", "-1", "inf", "nan", "soon"):
         assert_one_line_error(run("sweep", spec, "-o", tmp_path / "out", "--stop-timeout", bad), "--stop-timeout")
     from mi_gaussians.cluster.ray_cluster import Waits

@@ -75,7 +75,7 @@ def import_ray():
 
 
 @contextlib.contextmanager
-def connected(address: str | None = None, num_cpus: int | None = None):
+def connected(address: str | None = None, num_cpus: int | None = None, connect_seconds: float = Waits.connect):
     """Join the Ray cluster at ``address``, or start a local one (``num_cpus``: its CPUs, default all); yields the
     ``ray`` module and disconnects (stopping a local cluster this started) on every path. A driver already
     connected (e.g. a test's cluster) is used as it is and left connected."""
@@ -83,6 +83,8 @@ def connected(address: str | None = None, num_cpus: int | None = None):
     if ray.is_initialized():
         yield ray
         return
+    if address:
+        check_reachable(address, connect_seconds)         # (Ray itself retries an address for many minutes)
     kwargs = dict(include_dashboard=False, log_to_driver=False, logging_level="ERROR", configure_logging=True)
     try:
         if address:

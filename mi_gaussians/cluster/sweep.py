@@ -218,7 +218,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, variant: str, address: str | Non
 
         if todo:
             # (after Ray's start: its core puts a handler of its own on SIGTERM that prints a stack and kills the driver)
-            with connected(address) as ray, _stop_requests() as stop:
+            with connected(address, connect_seconds=waits.connect) as ray, _stop_requests() as stop:
                 check_resources(ray, spec.cpus, spec.gpus, f"{spec.path}: resources")
                 if address:
                     check_shared_folder(ray, out, waits.shared_folder)
