@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +30,7 @@ def read_run(folder: Path) -> dict | None:
         try:
             with np.load(folder / "checkpoints" / "ckpt.npz") as z:
                 hist = json.loads(bytes(z["meta"]).decode()).get("history")
-        except (OSError, ValueError, KeyError) as e:
+        except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as e:
             print(f"{folder}: checkpoint unreadable ({e}), skipped", file=sys.stderr)
             return None
     if not hist or not hist.get("iteration"):

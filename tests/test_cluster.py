@@ -148,7 +148,7 @@ def test_a_sweep_stopped_by_a_signal_checkpoints_its_runs_and_resumes(ray_cluste
     from mi_gaussians.run_folder import RunLock
 
     stop_s = 40
-    spec = write_spec(tmp_path / "spec.toml", KILL_SPEC.format(data=larger).replace("= 800", "= 400"))
+    spec = write_spec(tmp_path / "spec.toml", KILL_SPEC.format(data=larger))
     out = tmp_path / "out"
     log = open(tmp_path / "sweep.stderr", "wb")
     proc = subprocess.Popen([EXE, "sweep", str(spec), "-o", str(out), "--address", ray_cluster, "--quiet",
@@ -158,7 +158,7 @@ def test_a_sweep_stopped_by_a_signal_checkpoints_its_runs_and_resumes(ray_cluste
     folder = out / "runs" / "synth-s0"
     try:
         deadline = time.monotonic() + 240
-        while checkpoint_step(folder) < 100:
+        while checkpoint_step(folder) < 50:                       # (the first checkpoint: most of the run ahead)
             assert time.monotonic() < deadline, "the run did not checkpoint in time"
             assert proc.poll() is None, (tmp_path / "sweep.stderr").read_text()[-2000:]
             time.sleep(0.05)
@@ -177,7 +177,7 @@ def test_a_sweep_stopped_by_a_signal_checkpoints_its_runs_and_resumes(ray_cluste
     (row,) = rows(out)
     assert row["status"] == "stopped" and "run the same command again" in row["error"]
     stopped_at = checkpoint_step(folder)
-    assert 100 <= stopped_at < 400 and f"stopped at iteration {stopped_at}" in row["error"]
+    assert 50 <= stopped_at < 800 and f"stopped at iteration {stopped_at}" in row["error"]
     RunLock(folder).check_free()                                  # no worker trains on (it would hold the lock)
     assert checkpoint_step(folder) == stopped_at and not (folder / "metrics.json").exists()
     again = run("sweep", spec, "-o", out, "--address", ray_cluster, "--quiet")
@@ -395,8 +395,15 @@ def test_a_sweep_folder_may_hold_its_own_spec_and_an_earlier_sweeps_outputs(tmp_
     (old / "runs").mkdir()
     (old / "cache").mkdir()
     assert check_out(spec, old, overwrite=False) == list(OUTPUTS)
+    # ... also one stopped before any run finished, with no cache: a run folder in runs/ is enough
+    (old / "cache").rmdir()
+    (old / "runs" / "a-s0").mkdir(parents=True)
+    (old / "runs" / "a-s0" / "config.json").write_text("{}")
+    assert check_out(spec, old, overwrite=False) == list(OUTPUTS)
     # ... but not without its runs: then spec.toml is somebody's file
-    (old / "runs").rmdir()
+    import shutil
+
+    shutil.rmtree(old / "runs")
     with pytest.raises(ValueError, match="exists and was not written by mi-gs"):
         check_out(spec, old, overwrite=False)
 
@@ -506,3 +513,20 @@ def test_a_lost_run_says_what_died_once():
     assert lost_line(ray, ray.exceptions.NodeDiedError("gone"), 3).startswith("the node running it died")
     worker = lost_line(ray, ray.exceptions.WorkerCrashedError(), 3)
     assert worker.startswith("its worker process died 4 times (WorkerCrashedError); run the same command again")
+
+
+def test_resources_must_fit_on_one_node():
+    """CPUs on one node and a GPU on another do not make a node that holds the run."""
+    from types import SimpleNamespace
+
+    from mi_gaussians.cluster.ray_cluster import check_resources
+
+    ray = SimpleNamespace(nodes=lambda: [{"Alive": True, "Resources": {"CPU": 64.0}},
+                                         {"Alive": True, "Resources": {"CPU": 4.0, "GPU": 1.0}},
+                                         {"Alive": False, "Resources": {"CPU": 128.0, "GPU": 8.0}}])
+    check_resources(ray, 4, 1, "s.toml: resources")
+    check_resources(ray, 64, 0, "s.toml: resources")
+    with pytest.raises(ValueError, match=r"8 CPUs and 1 GPUs per run, but no node has both \(2 nodes"):
+        check_resources(ray, 8, 1, "s.toml: resources")
+    with pytest.raises(ValueError, match=r"resources.gpus: 2 per run, but the largest node has 1"):
+        check_resources(ray, 1, 2, "s.toml: resources")

@@ -325,6 +325,24 @@ def test_ngp_reads_images_r_folder(tmp_path, caplog):
         load_dataset(root, test_every=0)
 
 
+def test_blender_images_r_keeps_train_and_test_apart(tmp_path):
+    """A Blender scene's train/r_0.png and test/r_0.png share a name: images_2/ holds them at their relative paths
+    (images_2/train/r_0.png), so neither view reads the other's image."""
+    root = copy_fixture("tiny_blender", tmp_path)
+    plain = load_dataset(root, resolution=2)
+    colours = {"train": (255, 0, 0), "test": (0, 0, 255)}
+    for split, views in (("train", plain.train), ("test", plain.test)):
+        for v in views:
+            rel = v.image_path.relative_to(root)
+            assert rel.parts[0] == split
+            w, h = Image.open(v.image_path).size
+            (root / "images_2" / rel).parent.mkdir(parents=True, exist_ok=True)
+            Image.new("RGB", (round(w / 2), round(h / 2)), colours[split]).save(root / "images_2" / rel)
+    ds = load_dataset(root, resolution=2)
+    assert {v.image_path.parent.name for v in ds.train} == {"train"} and ds.test
+    assert np.all(ds.train[0].load_image()[..., 0] == 1.0) and np.all(ds.test[0].load_image()[..., 2] == 1.0)
+
+
 def write_masks(root: Path, names: dict[str, str], size=(24, 16), seed=0) -> dict[str, np.ndarray]:
     """Random grey masks for the tiny COLMAP scene's images, saved as ``masks/<file name>``; returns name -> m (H, W)."""
     rng = np.random.default_rng(seed)

@@ -90,6 +90,7 @@ def _run_info(path: Path) -> dict:
     """A run folder: what it trains on, how far it got (its checkpoint), its final metrics when it finished, and its
     model."""
     import json
+    import zipfile
 
     import numpy as np
 
@@ -104,8 +105,9 @@ def _run_info(path: Path) -> dict:
             with np.load(path / CHECKPOINT) as z:
                 meta = json.loads(bytes(z["meta"]).decode())
                 info["checkpoint"] = {"iteration": int(meta["step"]), "gaussians": int(z["param/means"].shape[0])}
-        except (OSError, ValueError, KeyError) as e:
-            info["checkpoint"] = {"error": f"not readable ({' '.join(str(e).split())[:120]})"}
+        except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as e:
+            why = " ".join(str(e).split())[:120] or type(e).__name__
+            info["checkpoint"] = {"error": f"{path / CHECKPOINT}: not readable ({why})"}
     if (path / METRICS).is_file():
         try:
             m = json.loads((path / METRICS).read_text())

@@ -51,8 +51,10 @@ def run(args) -> int:
         import sys
 
         name = signal.Signals(e.signum).name
-        n = len(e.stopped)
-        print(f"mi-gs: sweep stopped by {name}: {n} run{'s' if n != 1 else ''} stopped at a checkpoint "
+        saved = sum(r["error"].startswith("stopped at iteration") for r in e.stopped)
+        others = len(e.stopped) - saved
+        more = f", {others} before training began or ended after --stop-timeout" if others else ""
+        print(f"mi-gs: sweep stopped by {name}: {saved} run{'s' if saved != 1 else ''} stopped at a checkpoint{more} "
               f"({out / 'results.csv'}); the same command resumes", file=sys.stderr, flush=True)
         return 128 + e.signum
     failed = [r for r in rows if r["status"] != "done"]

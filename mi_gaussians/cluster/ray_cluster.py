@@ -30,12 +30,12 @@ class Waits:
 
 
 def check_reachable(address: str, seconds: float = Waits.connect) -> None:
-    """Something accepts connections at ``address`` (``HOST:PORT``, ``[IPv6]:PORT``; ``auto`` and ``ray://`` URLs are
-    left to Ray) within ``seconds``: ValueError with one line naming the address otherwise. Ray itself keeps retrying
+    """Something accepts connections at ``address`` (``HOST:PORT``, ``[IPv6]:PORT``; ``auto``, ``local`` and ``ray://``
+    URLs are left to Ray) within ``seconds``: ValueError with one line naming the address otherwise. Ray itself keeps retrying
     an address where nothing listens for many minutes, printing only its own warnings."""
     import socket
 
-    if address == "auto" or "://" in address:
+    if address in ("auto", "local") or "://" in address:
         return
     host, sep, port = address.rpartition(":")
     host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
@@ -54,15 +54,21 @@ def check_reachable(address: str, seconds: float = Waits.connect) -> None:
 
 
 def check_resources(ray, cpus: float, gpus: float, where: str) -> None:
-    """Some alive node of the cluster has ``cpus`` CPUs and ``gpus`` GPUs for one run: ValueError with one line
-    (``where``: the spec, as ``spec.toml: resources``) otherwise, as Ray would keep such a task waiting for ever."""
+    """Some alive node of the cluster has ``cpus`` CPUs and ``gpus`` GPUs for one run (both on the same node):
+    ValueError with one line (``where``: the spec, as ``spec.toml: resources``) otherwise, as Ray would keep such a
+    task waiting for ever."""
     nodes = [n.get("Resources", {}) for n in ray.nodes() if n.get("Alive")]
+    if any(float(r.get("CPU", 0.0)) >= cpus and float(r.get("GPU", 0.0)) >= gpus for r in nodes):
+        return
+    count = f"{len(nodes)} node{'s' if len(nodes) != 1 else ''}"
     for key, need, name in (("cpus", cpus, "CPU"), ("gpus", gpus, "GPU")):
         have = max((float(r.get(name, 0.0)) for r in nodes), default=0.0)
         if need > have:
             largest = f"the largest node has {have:g}" if have else f"no node of the cluster has a {name}"
-            raise ValueError(f"{where}.{key}: {need:g} per run, but {largest} ({len(nodes)} node"
-                             f"{'s' if len(nodes) != 1 else ''}); lower it or add nodes")
+            raise ValueError(f"{where}.{key}: {need:g} per run, but {largest} ({count}); lower it or add nodes")
+    raise ValueError(f"{where}: {cpus:g} CPUs and {gpus:g} GPUs per run, but no node has both ({count}: "
+                     + ", ".join(f"{float(r.get('CPU', 0)):g} CPUs / {float(r.get('GPU', 0)):g} GPUs" for r in nodes)
+                     + "); lower them or add nodes")
 
 
 def import_ray():

@@ -112,9 +112,10 @@ def _check_folders(spec: SweepSpec, out: Path, overwrite: bool) -> None:
 
 def _earlier_sweep(out: Path) -> set[str]:
     """The outputs of a sweep of an earlier version of mi-gs (which wrote no manifest) in ``out``, or nothing: its
-    spec.toml beside its runs/ and its cache (or results)."""
+    spec.toml beside its runs/ and its cache, its results, or a run folder in runs/."""
     if not ((out / SPEC).is_file() and (out / RUNS).is_dir()
-            and any((out / n).exists() for n in (CACHE, OLD_CACHE, *RESULTS))):
+            and (any((out / n).exists() for n in (CACHE, OLD_CACHE, *RESULTS))
+                 or any((d / run_folder.CONFIG).is_file() for d in (out / RUNS).iterdir()))):
         return set()
     return {n for n in (*OUTPUTS, OLD_CACHE) if (out / n).exists() and not (out / n).is_symlink()}
 
@@ -223,8 +224,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, variant: str, address: str | Non
                 if address:
                     check_shared_folder(ray, out, waits.shared_folder)
                 _prepare(ray, spec, todo, out, variant, progress, log)
-                if stop.signum is not None:
-                    raise SweepStopped(stop.signum, [])
+                stop.waiting = True                   # (from here a signal stops the runs at a checkpoint)
                 task = ray.remote(max_calls=1)(train_task).options(num_cpus=spec.cpus, num_gpus=spec.gpus,
                                                                   max_retries=spec.retries, retry_exceptions=False)
                 cache = str(cache_folder(out))
@@ -245,7 +245,10 @@ def run_sweep(spec: SweepSpec, out: str | Path, variant: str, address: str | Non
                             bar.update(1)
                             if r["status"] == "done":
                                 bar.set_postfix(PSNR=psnr, refresh=False)
-                            (bar.write if progress else log)(line)
+                            if progress:
+                                bar.write(line, file=sys.stderr)
+                            else:
+                                log(line)
                             write()
                 finally:
                     bar.close()
@@ -281,12 +284,14 @@ def _stop_requests():
 
     from ..runs import STOP_SIGNALS
 
-    state = SimpleNamespace(signum=None)
+    state = SimpleNamespace(signum=None, waiting=False)
 
     def handler(signum, frame):
         if state.signum is not None:
             os._exit(128 + signum)
         state.signum = signum
+        if not state.waiting:                # (the runs have not started: nothing to checkpoint, stop now)
+            raise SweepStopped(signum, [])
 
     # pycolmap (glog), first imported later by a triangulation, would put its own SIGTERM handler (a stack trace,
     # then death) over ours, as Ray's core does when it starts: both are in place before ours (see runs.py)
@@ -341,6 +346,9 @@ def _collect(ray, ref, run: PlannedRun, retries: int) -> dict:
     except ray.exceptions.RayError as e:
         return results_table.row(run, "failed", error=lost_line(ray, e, retries))
     if got["status"] == "stopped":
+        if got["step"] is None:
+            return results_table.row(run, "stopped", error="stopped before training began (nothing saved); run the "
+                                                            "same command again to start it")
         return results_table.row(run, "stopped", error=f"stopped at iteration {got['step']}; run the same command "
                                                         "again to resume it")
     if got["status"] != "done":

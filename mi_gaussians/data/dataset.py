@@ -7,7 +7,7 @@ Layouts (checked in this order, like the reference 3DGS):
   points around the cameras, as for ngp, when the model has none).
   With ``resolution = r > 1`` and an ``images_r/`` folder, its images are read instead of resampling ``images/``
   (the same for the ``blender`` and ``ngp`` layouts: ``images_r/`` beside the transforms file, nerfstudio's
-  downscaled folders, holding each frame's image under its file name).
+  downscaled folders, holding each frame's image at its relative path without a leading ``images/``).
   Masks (``masks=True``): when a ``masks/`` folder (``masks_r/`` with ``images_r/``) sits beside ``images/``, every
   image needs its mask there, named like the image, the image name + ``.png`` (COLMAP's convention) or
   ``<stem>_mask.<ext>``; white is the object. The image is composited through it over the background and the mask is
@@ -292,14 +292,20 @@ def _points_around(train: list[View], n_points: int, seed: int):
 # ---------------------------------------------------------------------------------------------------- transforms
 def _frame_views(path: Path, builder: _Builder, skip_missing: bool) -> list[View]:
     """The views of one transforms file. With resolution r > 1 and an ``images_r/`` folder beside the file, every
-    frame's image is read from ``images_r/<its file name>`` (nerfstudio's downscaled folders), already reduced."""
+    frame's image is read from ``images_r/`` (nerfstudio's downscaled folders), already reduced, at its path relative
+    to the file's folder without a leading ``images/``: ``images/0001.jpg`` -> ``images_4/0001.jpg``,
+    ``train/r_0.png`` -> ``images_2/train/r_0.png`` (a Blender scene's train and test images share names)."""
     frames = _blender.read_frames(path)
     reduced_dir = path.parent / f"images_{builder.resolution}"
     reduced = builder.resolution > 1 and reduced_dir.is_dir()
     files = []                                      # (frame, image path, exists, file size) of the file to read
     for f in frames:
         if reduced:
-            image_path, exists = resolve_image_file(reduced_dir, f.image_path.name)
+            rel = Path(os.path.relpath(f.image_path, path.parent))
+            rel = Path(*rel.parts[1:]) if len(rel.parts) > 1 and rel.parts[0] == "images" else rel
+            if rel.parts and rel.parts[0] == "..":
+                rel = Path(rel.name)                # (an image outside the scene's folder: by its name)
+            image_path, exists = resolve_image_file(reduced_dir, rel.as_posix())
             files.append((f, image_path, exists, image_size(image_path) if exists else None))
         else:
             files.append((f, f.image_path, f.exists, f.file_size))
