@@ -63,13 +63,32 @@ STOP_SIGNALS = ("SIGTERM", "SIGINT", "SIGHUP")
 
 
 @contextlib.contextmanager
-def stopping_on_signals():
-    """While a run goes on, SIGTERM, SIGINT and SIGHUP (what Slurm, Kubernetes, Ray, Ctrl-C and a closed terminal
-    send) stop it cleanly: during training it finishes the iteration, writes a checkpoint and raises
-    :class:`Stopped` with its iteration; before training it raises at once (every file is written atomically). A
-    second signal ends the process at once (status 128 + the signal), which loses nothing either. Yields the object
-    whose ``trainer`` attribute :func:`train_run` sets. The main thread only; the handlers before are restored."""
+def on_stop_signals(handler):
+    """``handler(signum, frame)`` on SIGTERM, SIGINT and SIGHUP (what Slurm, Kubernetes, Ray, Ctrl-C and a closed
+    terminal send) while the block runs; the handlers before are restored. The main thread only."""
     import signal
+
+    # pycolmap (its glog) puts a handler of its own on SIGTERM when it is first imported: one that prints a stack
+    # trace and kills the process. Imported later (a COLMAP model, undistortion, triangulation), it would replace ours
+    # underneath Python, and a SIGTERM during training would lose the iterations since the last checkpoint. (Ray's
+    # core does the same when it starts: a driver of Ray enters this after connecting.)
+    import pycolmap  # noqa: F401
+
+    signums = [getattr(signal, name) for name in STOP_SIGNALS if hasattr(signal, name)]
+    before = {s: signal.signal(s, handler) for s in signums}
+    try:
+        yield
+    finally:
+        for s, h in before.items():
+            signal.signal(s, h)
+
+
+@contextlib.contextmanager
+def stopping_on_signals():
+    """While a run goes on, SIGTERM, SIGINT and SIGHUP stop it cleanly: during training it finishes the iteration,
+    writes a checkpoint and raises :class:`Stopped` with its iteration; before training it raises at once (every file
+    is written atomically). A second signal ends the process at once (status 128 + the signal), which loses nothing
+    either. Yields the object whose ``trainer`` attribute :func:`train_run` sets."""
 
     class State:
         trainer = None
@@ -85,18 +104,8 @@ def stopping_on_signals():
             raise Stopped(signum, None)
         state.trainer.stop_signal = signum
 
-    # pycolmap (its glog) puts a handler of its own on SIGTERM when it is first imported: one that prints a stack
-    # trace and kills the process. Imported later (a COLMAP model, undistortion, triangulation), it would replace ours
-    # underneath Python, and a SIGTERM during training would lose the iterations since the last checkpoint.
-    import pycolmap  # noqa: F401
-
-    signums = [getattr(signal, name) for name in STOP_SIGNALS if hasattr(signal, name)]
-    before = {s: signal.signal(s, handler) for s in signums}
-    try:
+    with on_stop_signals(handler):
         yield state
-    finally:
-        for s, h in before.items():
-            signal.signal(s, h)
 
 
 def train_run(src: str | Path, out: str | Path, cfg: TrainConfig, record: RunRecord | None = None,

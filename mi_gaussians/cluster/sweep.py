@@ -279,10 +279,9 @@ def _stop_requests():
     the whole process group) ask it to stop: noted for the wait loop, which stops the runs; before the runs start it
     raises :class:`SweepStopped` at once. A second signal ends the process (exit 128 + signal)."""
     import os
-    import signal
     from types import SimpleNamespace
 
-    from ..runs import STOP_SIGNALS
+    from ..runs import on_stop_signals
 
     state = SimpleNamespace(signum=None, waiting=False)
 
@@ -293,17 +292,8 @@ def _stop_requests():
         if not state.waiting:                # (the runs have not started: nothing to checkpoint, stop now)
             raise SweepStopped(signum, [])
 
-    # pycolmap (glog), first imported later by a triangulation, would put its own SIGTERM handler (a stack trace,
-    # then death) over ours, as Ray's core does when it starts: both are in place before ours (see runs.py)
-    import pycolmap  # noqa: F401
-
-    signums = [getattr(signal, name) for name in STOP_SIGNALS if hasattr(signal, name)]
-    before = {s: signal.signal(s, handler) for s in signums}
-    try:
+    with on_stop_signals(handler):
         yield state
-    finally:
-        for s, h in before.items():
-            signal.signal(s, h)
 
 
 def _stop_runs(ray, refs: dict, pending: list, rows: dict, signum: int, retries: int, seconds: float) -> None:
