@@ -21,7 +21,9 @@ def train(src: Path, out: Path, iterations: int, options: list[str], code: Path 
     cmd = [sys.executable, "-m", "mi_gaussians.cli", "optimize", str(src), "-o", str(out), "--iterations",
            str(iterations), "--eval-every", "0", "--quiet", *options]
     if (out / "checkpoints" / "ckpt.npz").is_file():
-        cmd.append("--resume")
+        # (--resume takes the settings from the run's config.json and refuses --set; the other options are checked
+        # against the run's)
+        cmd = [a for i, a in enumerate(cmd) if a != "--set" and (i == 0 or cmd[i - 1] != "--set")] + ["--resume"]
     env = dict(os.environ)
     if code is not None:
         env["PYTHONPATH"] = os.pathsep.join([str(Path(code).resolve()), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
