@@ -51,6 +51,10 @@ class DataConfig:
     masks: bool = True                       # COLMAP layout: composite each image over the background through its
                                              # mask in masks/ (white = object) when that folder exists
     seed: int = 0
+    pose_noise: tuple[float, float] = (0.0, 0.0)   # (degrees, fraction of the scene extent): every training camera
+                                             # turned by exactly this angle about a random axis through its centre and
+                                             # moved this far in a random direction (seeded by data.seed); test
+                                             # cameras stay exact. To measure --pose-opt (data/pose_noise.py)
 
 
 @dataclass(frozen=True)
@@ -130,6 +134,10 @@ class OptimConfig:
     exposure_grid_lr: float = 2e-3           # bilateral: its Adam's rate (gsplat's: warmed up over 1,000 steps,
                                              # then decaying to 1 % over the run's iterations)
     exposure_grid_tv: float = 10.0           # bilateral: weight of the grids' total variation (gsplat's)
+    pose_opt: bool = False                   # --pose-opt: learn a rigid correction of every training camera
+                                             # (optim/pose.py, gsplat's pose_opt)
+    pose_opt_lr: float = 1e-5                # its Adam's rate (gsplat's), constant
+    pose_opt_reg: float = 1e-6               # its L2 weight decay (gsplat's pose_opt_reg)
 
     def with_depth_weight(self, weight: float) -> "OptimConfig":
         """Depth supervision of weight ``weight`` decaying to ``weight / DEPTH_WEIGHT_DECAY`` (``--depth-weight``)."""
@@ -347,7 +355,7 @@ _OPEN_FRACTION = Range(0, 1, open_low=True, open_high=True)
 RULES: dict[str, "Range | tuple[str, ...]"] = {
     "strategy": tuple(STRATEGIES), "checkpoint_every": _COUNT,
     "data.resolution": _COUNT, "data.random_points": _COUNT, "data.init": INITS,
-    "data.background": Range(0),
+    "data.background": Range(0), "data.pose_noise": Range(0, counts=(2, 2)),
     "optim.iterations": _COUNT, "optim.position_lr_max_steps": _COUNT, "optim.sh_degree": Range(0, 3),
     "optim.sh_increase_interval": _COUNT, "optim.lambda_dssim": _FRACTION, "optim.adam_eps": _POSITIVE,
     "optim.exposure": EXPOSURES, "optim.ssim_padding": SSIM_PADDINGS, "optim.exposure_grid": Range(2, counts=(3, 3)),

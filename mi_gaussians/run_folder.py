@@ -31,11 +31,13 @@ EXPOSURE = "exposure.json"               # the training images' colour transform
 EXPOSURE_GRIDS = "exposure_grids.npz"    # ... their bilateral grids (--exposure bilateral): names, grids
 GAUSSIAN_SCENE = "gaussians.xml"
 CAMERAS = "cameras.json"                 # the run's training and test cameras ({"train": [...], "test": [...]})
+REFINED_CAMERAS = "cameras_refined.json"  # --pose-opt: the training cameras as refined ({"train": [...]})
+REFINED_IMAGES = "images_refined.txt"    # ... and as COLMAP's images.txt
 REFERENCES = "references"
 POINTS = "points"                        # triangulated initial points, cached (kept by --overwrite, as references)
 #: The names a run writes at the top of its folder (how a folder of an earlier version, without a Manifest, is read)
 RUN_OUTPUTS = (CHECKPOINTS, RENDERS, COMPARE, CONFIG, METRICS, EVAL, HISTORY, CURVES, GAUSSIAN_SCENE, MODEL, EXPOSURE,
-               EXPOSURE_GRIDS, CAMERAS)
+               EXPOSURE_GRIDS, CAMERAS, REFINED_CAMERAS, REFINED_IMAGES)
 _SAVED_MODELS = "point_cloud_*.ply"       # the models of TrainConfig.save_iterations
 
 LOCK = ".mi-gs.lock"
@@ -182,7 +184,8 @@ def run_outputs(cfg: TrainConfig, view_names, scene_file: bool) -> list[str]:
     out += [saved_model(i) for i in cfg.save_iterations if i < cfg.optim.iterations]
     out += [f"{RENDERS}/{s}{ext}" for s in stems for ext in (".exr", ".png")] + [f"{COMPARE}/{s}.png" for s in stems]
     compensation = {"affine": [EXPOSURE], "bilateral": [EXPOSURE_GRIDS]}.get(cfg.optim.exposure, [])
-    return out + ([GAUSSIAN_SCENE] if scene_file else []) + compensation
+    poses = [REFINED_CAMERAS, REFINED_IMAGES] if cfg.optim.pose_opt else []
+    return out + ([GAUSSIAN_SCENE] if scene_file else []) + compensation + poses
 
 
 class Manifest:

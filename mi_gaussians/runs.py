@@ -157,6 +157,7 @@ def check_outside_dataset(src: str | Path, out: str | Path, what: str = "-o") ->
 def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cache, progress, watch, farm,
                   log, stop) -> RunResult:
     from .data.dataset import check_trainable_size, fingerprint, verify_images
+    from .data.pose_noise import perturbed_views
     from .optim.trainer import Trainer, TrainingStopped
     from .run_folder import POINTS, REFERENCES, Manifest, run_outputs
 
@@ -172,6 +173,8 @@ def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cac
     digest = fingerprint(ds) if ds.layout != "mitsuba" else None    # (a scene file's references carry their own key)
     if record is not None:
         check_resumed_dataset(src, out, record, digest, log)
+    given = [v.camera for v in ds.train]
+    ds = perturbed_views(ds, cfg.data.pose_noise, cfg.data.seed)     # (data.pose_noise: known errors to measure)
     verify_images(ds.test, progress=progress)
     planned = run_outputs(cfg, [v.name for v in (ds.test or ds.train[:1])], ds.layout == "mitsuba")
     manifest.check_free(planned)                      # (a user's file where the run would write: refused)
@@ -181,7 +184,7 @@ def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cac
         if cache is None and cfg.data.init in ("auto", "triangulate"):
             manifest.claim([POINTS])                  # (a triangulation's cache, kept by --overwrite)
         ds = initial_points(ds, cfg, points_root(out, cache), log)
-    trainer = Trainer(ds, cfg, out, progress=progress)     # (decodes the training images)
+    trainer = Trainer(ds, cfg, out, progress=progress, given_cameras=given)     # (decodes the training images)
     if record is None and log is not None:
         _note_if_never_refined(trainer, cfg, log)
     watcher = watch(trainer, ds) if watch is not None else None
@@ -332,19 +335,52 @@ def _has_alpha(ds: Dataset) -> bool:
 
 
 def run_dataset(record: RunRecord, out: str | Path, dataset: str | None = None, render_missing: bool = True,
-                progress: bool = True) -> Dataset:
+                progress: bool = True, log: Callable[[str], None] | None = to_stderr) -> Dataset:
     """The views a run is evaluated or viewed on: those of ``dataset``, else of the dataset it was trained on (a
     scene file's references from the run's cache, rendered again only if they are gone and ``render_missing``),
-    with the run's resolution, background and split; no initial points."""
+    with the run's resolution, background and split; no initial points. The run's own dataset's training views have
+    the cameras the run trained from (``data.pose_noise``) or refined (``--pose-opt``: :func:`refined_training_cameras`);
+    test views always keep the dataset's."""
     cfg, out = record.train, Path(out)
     src = Path(dataset or record.dataset)
+    d = cfg.data
     if is_scene_file(src):
         cfg = dataclasses.replace(cfg, scene=dataclasses.replace(cfg.scene, init="random", init_points=1))
-        return training_dataset(src, cfg, out, cache=record.references_cache(out), progress=progress,
-                                expect_key=record.references_key, render_missing=render_missing)
-    d = cfg.data
-    return load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
-                        random_points=0, masks=d.masks)
+        ds = training_dataset(src, cfg, out, cache=record.references_cache(out), progress=progress,
+                              expect_key=record.references_key, render_missing=render_missing)
+    else:
+        ds = load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
+                          random_points=0, masks=d.masks)
+    if dataset is not None and src.resolve() != Path(record.dataset).resolve():
+        return ds
+    from .data.pose_noise import perturbed_views
+
+    return refined_training_cameras(perturbed_views(ds, d.pose_noise, d.seed), out, log)
+
+
+def refined_training_cameras(ds: Dataset, out: str | Path, log: Callable[[str], None] | None = to_stderr) -> Dataset:
+    """``ds`` (the dataset of the run in ``out``) with the training cameras the run refined (``--pose-opt``:
+    ``cameras_refined.json``), matched by name; ``ds`` as it is where the run has none, or (said in one line to
+    ``log``) where the file is damaged or holds other views."""
+    from .data.camera import Camera
+    from .io_utils import read_json_object
+    from .run_folder import REFINED_CAMERAS
+
+    path = Path(out) / REFINED_CAMERAS
+    if not path.is_file():
+        return ds
+    try:
+        entries = read_json_object(path, "refined cameras", '{"train": [camera, ...]}').get("train")
+        if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+            raise ValueError(f"{path}: expected \"train\": a list of cameras")
+        refined = {c.name: c for c in (Camera.from_dict(e, source=str(path)) for e in entries)}
+        if sorted(refined) != sorted(v.name for v in ds.train):
+            raise ValueError(f"{path}: its cameras are not the training views of the run's dataset")
+    except ValueError as e:
+        if log is not None:
+            log(f"mi-gs: warning: {e}; the training views keep the dataset's cameras")
+        return ds
+    return dataclasses.replace(ds, train=[dataclasses.replace(v, camera=refined[v.name]) for v in ds.train])
 
 
 def model_raster_config(model: str | Path, antialiased: bool | None = None,
@@ -366,3 +402,23 @@ def model_raster_config(model: str | Path, antialiased: bool | None = None,
             if antialiased is None and warn is not None:
                 warn(f"rendering with the default settings: {e}")
     return cfg if antialiased is None else dataclasses.replace(cfg, antialiased=antialiased)
+
+
+def model_run_cameras(model: str | Path, ds: Dataset, log: Callable[[str], None] | None = to_stderr) -> Dataset:
+    """``ds`` with the refined training cameras of the run whose folder holds the model file ``model``, when that run
+    refined them (``--pose-opt``) and ``ds`` is the dataset it trained on (said in one line to ``log``); else ``ds``."""
+    from .run_folder import REFINED_CAMERAS
+
+    folder = Path(model).parent
+    if not (folder / REFINED_CAMERAS).is_file() or not (folder / CONFIG).is_file():
+        return ds
+    try:
+        record = RunRecord.read(folder, "")
+    except ValueError:
+        return ds
+    if Path(record.dataset).resolve() != Path(ds.root).resolve() or record.train.data.resolution != ds.resolution:
+        return ds
+    refined = refined_training_cameras(ds, folder, log)
+    if refined is not ds and log is not None:
+        log(f"note: the training views use the cameras the run refined ({folder / REFINED_CAMERAS})")
+    return refined

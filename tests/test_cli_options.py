@@ -27,7 +27,7 @@ EXAMPLES = {
     "--random-points": ["1000"], "--seed": ["3"], "--checkpoint-every": ["50"], "--eval-every": ["0"],
     "--rig": ["sphere"], "--views": ["12"], "--test-views": ["2"], "--radius": ["4"], "--fov": ["30"],
     "--up": ["0", "0", "1"], "--spp": ["8"], "--linear": [], "--init": ["cube"], "--init-points": ["2000"],
-    "--define": ["spp=4"], "--exposure": [],
+    "--define": ["spp=4"], "--exposure": [], "--pose-opt": [],
 }
 SCENE_ONLY = {"--depth-weight"}          # (checked against the input: needs a scene file)
 

@@ -132,6 +132,10 @@ def _render_dataset_views(args, out: Path) -> int:
     check_outside_dataset(args.dataset, out)
     ds = load_dataset(args.dataset, resolution=args.resolution or DataConfig().resolution,
                       background=background(args.background))
+    if args.split != "test":
+        from ..runs import model_run_cameras
+
+        ds = model_run_cameras(args.input, ds)
     views = {"train": ds.train, "test": ds.test, "all": ds.views}[args.split]
     if not views:
         raise InputError(f"{args.dataset}: the {args.split} split is empty")

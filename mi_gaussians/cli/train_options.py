@@ -133,6 +133,10 @@ def options() -> list[Option]:
                     "image and its brightness (gsplat's bilateral grid), saved in exposure_grids.npz; never in the "
                     "model; the test views are then also scored the reference's way (a transform fitted on their "
                     "left half, the right half scored)"}),
+        Option(("--pose-opt",), ("optim.pose_opt",), _store_true(
+            "refine the training cameras with the Gaussians (gsplat's pose_opt: a rotation and translation per "
+            f"camera, Adam at {o.pose_opt_lr:g}, optim.pose_opt_lr); the refined cameras are written to "
+            "cameras_refined.json and images_refined.txt, test cameras stay as given")),
         Option(("--strategy",), ("strategy",), {
             "choices": tuple(STRATEGIES),
             "help": "densification: 'default' (the paper's clone / split / prune) or 'mcmc' (3DGS as Markov Chain "

@@ -114,6 +114,38 @@ def quaternion_to_matrix(q) -> np.ndarray:
                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
 
 
+def matrix_to_quaternion(R) -> np.ndarray:
+    """The unit quaternion (w, x, y, z), w >= 0, of the rotation matrix ``R`` (the inverse of
+    :func:`quaternion_to_matrix`; Shepperd's method, stable for every angle)."""
+    R = np.asarray(R, dtype=np.float64)
+    tr = np.trace(R)
+    i = int(np.argmax([tr, R[0, 0], R[1, 1], R[2, 2]]))
+    if i == 0:
+        s = 2.0 * math.sqrt(1.0 + tr)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    else:
+        j, k = i % 3 + 1, (i + 1) % 3 + 1          # the two other axes, 1-based as i
+        s = 2.0 * math.sqrt(1.0 + R[i - 1, i - 1] - R[j - 1, j - 1] - R[k - 1, k - 1])
+        q = [0.0] * 4
+        q[0] = (R[k - 1, j - 1] - R[j - 1, k - 1]) / s
+        q[i] = 0.25 * s
+        q[j] = (R[j - 1, i - 1] + R[i - 1, j - 1]) / s
+        q[k] = (R[k - 1, i - 1] + R[i - 1, k - 1]) / s
+    q = np.array(q)
+    return q if q[0] >= 0 else -q
+
+
+def images_text(names: list[str], world_to_cameras: list[np.ndarray], camera_ids: list[int]) -> str:
+    """COLMAP's ``images.txt`` of these poses (no 2D points: each image's second line is empty)."""
+    lines = ["# Image list with two lines of data per image:",
+             "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME", "#   POINTS2D[] as (X, Y, POINT3D_ID)",
+             f"# Number of images: {len(names)}, mean observations per image: 0"]
+    for iid, (name, m, cid) in enumerate(zip(names, world_to_cameras, camera_ids), start=1):
+        q, t = matrix_to_quaternion(np.asarray(m)[:3, :3]), np.asarray(m, np.float64)[:3, 3]
+        lines += [" ".join([str(iid), *(repr(float(v)) for v in (*q, *t)), str(cid), name]), ""]
+    return "\n".join(lines) + "\n"
+
+
 # ---------------------------------------------------------------------------------------------------- validation
 def _camera(where: str, cid: int, model: str, width: int, height: int, params: list[float]) -> ColmapCamera:
     if model not in SUPPORTED_MODELS:

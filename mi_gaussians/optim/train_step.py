@@ -66,7 +66,8 @@ class StepInputs:
     step: "mi.UInt32"                     # the iteration (1 element; keys the strategy's per-iteration noise)
     depth_target: "mi.TensorXf | None" = None   # (H, W) inverse exact depth, 0 where no surface (depth loss)
     depth_weight: "mi.Float | None" = None      # this iteration's depth-loss weight (1 element)
-    view_index: "mi.UInt32 | None" = None       # the training view (1 element), whose colour compensation applies
+    view_index: "mi.UInt32 | None" = None       # the training view (1 element), whose colour compensation and pose
+                                                # correction apply
     exposure_lr: "mi.Float | None" = None       # this iteration's exposure learning rate (1 element)
 
 
@@ -101,7 +102,7 @@ def training_loss(out, target, lambda_dssim, strategy: Strategy, params: Gaussia
 class TrainStep:
     """A training iteration without host synchronization: render, loss, backward, statistics, masked Adam step.
 
-    ``step(params, state, inputs, valid, sh_degree, update_state, capacity)`` returns device values
+    ``step(params, state, inputs, valid, sh_degree, update_state, capacity, exposure, pose)`` returns device values
     ``(loss, ok, instances)`` (1 element each) and changes ``params`` and ``state`` in place. ``valid`` is the
     ``ok`` of the previous step (``mi.Bool(True)`` after a synchronization). ``freeze=False`` runs the same code
     traced every time (a reference for tests)."""
@@ -112,9 +113,10 @@ class TrainStep:
         lam = float(lambda_dssim)
 
         def step(params: GaussianAdam, state, inputs: StepInputs, valid, sh_degree: int, update_state: bool,
-                 capacity: int, n: int, exposure):
+                 capacity: int, n: int, exposure, pose):
             # (n, the number of Gaussians, is an argument so that a new count always makes a new recording)
-            out = render(params.gaussians, inputs.view, background=inputs.background, sh_degree=sh_degree,
+            view = inputs.view if pose is None else pose.view(inputs.view, inputs.view_index)
+            out = render(params.gaussians, view, background=inputs.background, sh_degree=sh_degree,
                          cfg=raster, capacity=capacity)
             strategy.step_pre_backward(params, state, None, out, collect=update_state)
             target = composite_target(inputs.target, inputs.transparency, inputs.background, fixed)
@@ -130,6 +132,8 @@ class TrainStep:
             if exposure is not None:
                 exposure.set_learning_rate(inputs.exposure_lr)
                 exposure.step(active=ok)
+            if pose is not None:
+                pose.step(inputs.view_index, active=ok)
             return loss, ok, mi.UInt32(out.n_instances)
 
         # recordings are made when the model's size changes (densification), so many over a run: no warning
@@ -142,6 +146,6 @@ class TrainStep:
         return self._step.n_recordings if self.frozen else 0
 
     def __call__(self, params: GaussianAdam, state, inputs: StepInputs, valid, sh_degree: int, update_state: bool,
-                 capacity: int, exposure=None):
+                 capacity: int, exposure=None, pose=None):
         return self._step(params, state, inputs, valid, int(sh_degree), bool(update_state), int(capacity), params.n,
-                          exposure)
+                          exposure, pose)

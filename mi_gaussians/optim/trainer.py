@@ -45,6 +45,7 @@ from .. import report, run_folder
 from . import checkpoint
 from .adam import GaussianAdam
 from .compensation import make_compensation, save_compensation
+from .pose import PoseDeltas, save_refined_cameras
 from .loop_state import History, LoopStats, ViewSampler
 from .strategies import initial_gaussians, make_strategy
 from .losses import inverse_depth_target
@@ -85,10 +86,14 @@ class _Pending:
 
 
 class Trainer:
-    def __init__(self, ds: Dataset, cfg: TrainConfig, out_dir: str | Path, progress: bool = True):
+    def __init__(self, ds: Dataset, cfg: TrainConfig, out_dir: str | Path, progress: bool = True,
+                 given_cameras: list | None = None):
+        """``given_cameras``: the training cameras as the dataset gives them, where ``ds`` holds perturbed ones
+        (``data.pose_noise``): the run reports its cameras' errors against them."""
         if not ds.train:
             raise ValueError(f"{ds.root}: no training views")
         self.ds, self.cfg, self.out = ds, cfg, Path(out_dir)
+        self.given_cameras = given_cameras or [v.camera for v in ds.train]
         self.progress = progress
         self.extent = float(ds.extent)
         self.background = tuple(float(b) for b in ds.background)
@@ -125,6 +130,7 @@ class Trainer:
                                    cfg.optim, self.extent)
         self.strategy_state = self.strategy.initialize_state(self.params.n)
         self.exposure = make_compensation(cfg.optim, len(ds.train))
+        self.poses = PoseDeltas(len(ds.train), cfg.optim, self.extent) if cfg.optim.pose_opt else None
         # the frozen training step (see train_step.py) and the state of the loop around it
         self.train_step = TrainStep(self.strategy, cfg.raster, cfg.optim.lambda_dssim, self.background,
                                     freeze=cfg.freeze, ssim_padding=cfg.optim.ssim_padding)
@@ -155,6 +161,8 @@ class Trainer:
         sections = {"param": values, "adam": self.params.export_moments(), "densify": stats}
         if self.exposure is not None:
             sections["exposure"] = self.exposure.export()
+        if self.poses is not None:
+            sections["pose"] = self.poses.export()
         self.loop.close(self.elapsed)
         meta = {"step": self.step, "refine_pending": self._refine_at, "elapsed": self.elapsed,
                 "history": self.history.to_dict(), "loop": self.loop.to_dict(),
@@ -172,6 +180,8 @@ class Trainer:
                                                              self.params.n)
             if self.exposure is not None:
                 self.exposure.restore(sections.get("exposure", {}))
+            if self.poses is not None:
+                self.poses.restore(sections.get("pose", {}))
         except (KeyError, TypeError, ValueError) as e:
             raise ValueError(f"{path}: checkpoint does not fit this run ({e})") from None
         self.step = int(meta["step"])
@@ -210,8 +220,8 @@ class Trainer:
         g = self.params.gaussians
         degree = sh_degree_at(step, g.sh_degree, o.sh_increase_interval)
         idx, bg = self._draw()
-        view = self.ds.train[idx]
-        out = render(g, view.camera, background=bg, sh_degree=degree, cfg=cfg.raster)
+        camera = self.ds.train[idx].camera if self.poses is None else self.poses.view(self._view_params(idx), idx)
+        out = render(g, camera, background=bg, sh_degree=degree, cfg=cfg.raster)
         self.strategy.step_pre_backward(self.params, self.strategy_state, step, out,
                                         collect=self.strategy.updates_state_at(step))
         depth = self.depth_targets is not None
@@ -238,6 +248,8 @@ class Trainer:
         if self.exposure is not None:          # (every iteration, as the reference's exposure optimizer)
             self.exposure.set_learning_rate(dr.opaque(mi.Float, self.exposure.learning_rate(step)))
             self.exposure.step()
+        if self.poses is not None:             # (every iteration, as gsplat's pose optimizer)
+            self.poses.step(idx)
         if refines:
             self._refine_at = step
         return value, int(out.n_instances)
@@ -286,14 +298,16 @@ class Trainer:
                             depth_target=None if self.depth_targets is None else self.depth_targets[idx],
                             depth_weight=None if self.depth_targets is None
                             else dr.opaque(mi.Float, depth_weight(step, cfg.optim)),
-                            view_index=None if self.exposure is None else dr.opaque(mi.UInt32, idx),
+                            view_index=None if self.exposure is None and self.poses is None
+                            else dr.opaque(mi.UInt32, idx),
                             exposure_lr=None if self.exposure is None
                             else dr.opaque(mi.Float, self.exposure.learning_rate(step)))
         degree = sh_degree_at(step, self.params.gaussians.sh_degree, cfg.optim.sh_increase_interval)
         if self._valid is None:
             self._valid = dr.opaque(mi.Bool, True)
         loss, ok, instances = self.train_step(self.params, self.strategy_state, inputs, self._valid, degree,
-                                              self.strategy.updates_state_at(step), self.capacity, self.exposure)
+                                              self.strategy.updates_state_at(step), self.capacity, self.exposure,
+                                              self.poses)
         self._valid = ok
         self._pending.append(_Pending(step, idx, host, loss, ok, instances))
         self.step = step
@@ -441,6 +455,23 @@ class Trainer:
             self._bar = None
         return self.finish()
 
+    def _pose_report(self) -> dict:
+        """The training cameras' mean errors against the given ones (``given_cameras``), as the run started and as it
+        ends (refined: ``--pose-opt``), and the refined cameras written beside the model."""
+        from ..data.pointcloud import camera_extent
+        from ..data.pose_noise import pose_errors
+
+        extent = camera_extent(np.stack([c.center for c in self.given_cameras]))[1]    # (the given cameras' extent)
+        start = [v.camera for v in self.ds.train]
+        end = start if self.poses is None else self.poses.cameras(start)
+        if self.poses is not None:
+            save_refined_cameras(self.out, end)
+        (r0, d0), (r1, d1) = pose_errors(start, self.given_cameras), pose_errors(end, self.given_cameras)
+        return {"against": "the training cameras as the dataset gives them", "optimized": self.poses is not None,
+                "rotation_error_degrees": {"start": round(r0, 6), "end": round(r1, 6)},
+                "translation_error": {"start": round(d0, 8), "end": round(d1, 8)},
+                "translation_error_of_extent": {"start": round(d0 / extent, 8), "end": round(d1 / extent, 8)}}
+
     def _drain(self) -> None:
         """Commit every queued iteration (training time; an overflow rewinds and empties the queue)."""
         t0 = time.perf_counter()
@@ -483,6 +514,8 @@ class Trainer:
                                      protocol="half")
             metrics["half_image"] = {"protocol": PROTOCOLS["half"], **scores_report(half, note)}
             save_compensation(self.exposure, self.out, [v.name for v in self.ds.train])
+        if self.poses is not None or any(c is not v.camera for c, v in zip(self.given_cameras, self.ds.train)):
+            metrics["poses"] = self._pose_report()
         depth = depth_error(g, views, cfg=self.cfg.raster)
         if depth is not None:
             metrics["depth_mae"], metrics["depth_coverage"] = depth["depth_mae"], round(depth["coverage"], 6)

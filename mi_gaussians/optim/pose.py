@@ -1,0 +1,154 @@
+"""Camera pose optimisation (``--pose-opt``): each training camera gets a learnt rigid correction, gsplat's ``pose_opt``.
+
+Real captures come with imperfect poses, and a fraction of a degree blurs every Gaussian. As gsplat's
+``CameraOptModule``, training camera ``i`` carries 9 numbers ``p_i``, zero at the start: a translation ``dx`` and a
+rotation in the continuous 6D form of Zhou et al. 2019 (``rotation_6d``: the first two rows of a rotation matrix,
+Gram-Schmidt-orthonormalised; the 6 numbers are added to the identity's ``(1, 0, 0, 0, 1, 0)``). The corrected
+camera-to-world matrix is ``C2W @ [[rot, dx], [0, 1]]``: a rotation about the camera's centre and a translation, both
+in the camera's own axes. Unlike gsplat, ``dx`` is ``p[0:3]`` times the scene extent (gsplat normalises its scenes to
+about unit size first), so the learning rate means the same motion at every scene scale.
+
+Gradients: the rasterizer's projection is Dr.Jit arithmetic of the view's rotation ``R``, translation ``t`` and
+centre, and the blend's hand-written backward pass feeds it; built from ``p_i`` by :func:`adjusted_view`, the view
+passes the gradient on to ``p_i`` (``tests/test_pose.py`` checks it against float64 finite differences of the
+independent reference renderer).
+
+:class:`PoseDeltas` owns them as :class:`~.exposure.Exposure` owns the colour transforms: its own ``mi.ad.Adam``
+(PyTorch's eps 1e-8; gsplat's rate 1e-5 and L2 weight decay 1e-6, ``optim.pose_opt_lr`` / ``optim.pose_opt_reg``),
+sparse (a step moves only the rendered camera's ``p_i``, its L2 term included: each step sees one view), a PyTree for
+``dr.freeze`` (the view index is an input of the frozen step, so it keeps replaying), checkpointed with the run. Test
+cameras are never corrected (gsplat's and nerfstudio's protocol): what the corrections learn belongs to the training
+images, and the run folder holds them as refined cameras (``cameras_refined.json``, ``images_refined.txt``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..config import OptimConfig
+from ..data.camera import Camera
+from ..drjit_utils import owned_array
+from ..raster.projection import ViewParams
+from .adam import export_state, import_state, masked_step, opaque_step_counts
+
+KEY = "pose"
+WIDTH = 9                                      # dx (3), the 6D rotation's offset from the identity (6)
+IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+
+
+def adjusted_view(view: ViewParams, p: list, extent: float) -> ViewParams:
+    """``view`` moved by the correction ``p`` (9 Dr.Jit scalars; see the module docstring), differentiable in ``p``:
+    ``R' = rot^T R``, ``t' = rot^T (t - dx)``, centre ``+ R^T dx``."""
+    dx = [p[k] * extent for k in range(3)]
+    a1 = mi.Vector3f(*[p[3 + k] + IDENTITY_6D[k] for k in range(3)])
+    a2 = mi.Vector3f(*[p[6 + k] + IDENTITY_6D[3 + k] for k in range(3)])
+    b1 = dr.normalize(a1)
+    b2 = dr.normalize(a2 - dr.dot(b1, a2) * b1)
+    b3 = dr.cross(b1, b2)
+    R = view.R
+    rows = [b1[i] * R[0] + b2[i] * R[1] + b3[i] * R[2] for i in range(3)]      # row i of rot^T R
+    u = view.t - mi.Vector3f(*dx)
+    t = mi.Vector3f(*[b1[i] * u[0] + b2[i] * u[1] + b3[i] * u[2] for i in range(3)])
+    center = view.center + dx[0] * R[0] + dx[1] * R[1] + dx[2] * R[2]
+    return dataclasses.replace(view, R=mi.Matrix3f([[r[0], r[1], r[2]] for r in rows]), t=t,
+                               center=mi.Point3f(center))
+
+
+def adjusted_world_to_camera(world_to_camera: np.ndarray, p: np.ndarray, extent: float) -> np.ndarray:
+    """The (4, 4) float64 world-to-camera matrix of a camera corrected by ``p`` (9 numbers), as :func:`adjusted_view`."""
+    p = np.asarray(p, np.float64)
+    a1, a2 = p[3:6] + IDENTITY_6D[:3], p[6:9] + IDENTITY_6D[3:]
+    b1 = a1 / np.linalg.norm(a1)
+    b2 = a2 - b1 @ a2 * b1
+    b2 /= np.linalg.norm(b2)
+    rot = np.stack([b1, b2, np.cross(b1, b2)])
+    fix = np.eye(4)
+    fix[:3, :3], fix[:3, 3] = rot, p[:3] * extent
+    return np.linalg.inv(np.linalg.inv(np.asarray(world_to_camera, np.float64)) @ fix)
+
+
+class PoseDeltas:
+    """The pose corrections of ``n_images`` training cameras in a scene of size ``extent`` (module docstring)."""
+
+    DRJIT_STRUCT = {"_adam": object}
+
+    def __init__(self, n_images: int, cfg: OptimConfig = OptimConfig(), extent: float = 1.0):
+        self.n = int(n_images)
+        self.extent = float(extent)
+        self.weight_decay = float(cfg.pose_opt_reg)
+        self._adam = mi.ad.Adam(lr=float(cfg.pose_opt_lr), epsilon=1e-8, mask_updates=True)
+        self._adam[KEY] = mi.TensorXf(dr.zeros(mi.Float, self.n * WIDTH), (self.n, WIDTH))
+        opaque_step_counts(self._adam, [KEY])
+
+    @property
+    def tensor(self) -> "mi.TensorXf":
+        """The (n, 9) corrections, grad-enabled."""
+        return self._adam[KEY]
+
+    def deltas(self) -> np.ndarray:
+        """(n, 9) float64, a host copy."""
+        return np.array(self.tensor, dtype=np.float64).reshape(self.n, WIDTH)
+
+    def view(self, view: ViewParams, index) -> ViewParams:
+        """Training view ``index`` (an int, or a 1-element ``mi.UInt32``, opaque inside a frozen step) through its
+        correction, differentiable in the correction."""
+        if not dr.is_array_v(index):
+            index = dr.opaque(mi.UInt32, int(index), 1)
+        flat = self.tensor.array
+        p = [dr.gather(mi.Float, flat, index * WIDTH + k) for k in range(WIDTH)]
+        return adjusted_view(view, p, self.extent)
+
+    def step(self, index, active=None) -> None:
+        """One Adam step of camera ``index``'s correction from the gradient of the last backward pass, its L2 weight
+        decay (PyTorch's ``weight_decay``: ``grad += decay * p``) included; masked by ``active`` as the Gaussians'."""
+        if not dr.is_array_v(index):
+            index = dr.opaque(mi.UInt32, int(index), 1)
+        t = self._adam[KEY]
+        if self.weight_decay > 0:
+            rows = dr.arange(mi.UInt32, self.n * WIDTH) // WIDTH
+            decay = dr.select(rows == index, self.weight_decay * dr.detach(t.array), 0.0)
+            dr.set_grad(t, mi.TensorXf(dr.grad(t).array + decay, (self.n, WIDTH)))
+        masked_step(self._adam, [KEY], active)
+
+    def cameras(self, cameras: list[Camera]) -> list[Camera]:
+        """``cameras`` (the training cameras, in order) through their corrections (float64)."""
+        deltas = self.deltas()
+        return [dataclasses.replace(c, world_to_camera=adjusted_world_to_camera(c.world_to_camera, d, self.extent))
+                for c, d in zip(cameras, deltas)]
+
+    # ------------------------------------------------------------------ checkpoints
+    def export(self) -> dict[str, np.ndarray]:
+        """The corrections and their Adam state, for a checkpoint (``value``, ``pose.t/m/v``)."""
+        return {"value": np.array(self.tensor, dtype=np.float32).reshape(self.n, WIDTH),
+                **export_state(self._adam, [KEY])}
+
+    def restore(self, arrays: dict) -> None:
+        """What :meth:`export` wrote (KeyError / ValueError when it does not fit: another number of images)."""
+        value = np.asarray(arrays["value"], np.float32)
+        if value.shape != (self.n, WIDTH):
+            raise ValueError(f"saved pose corrections of shape {value.shape}, the run has {self.n} training cameras")
+        self._adam[KEY] = mi.TensorXf(owned_array(mi.Float, value), (self.n, WIDTH))   # (same shape: state kept)
+        import_state(self._adam, [KEY], arrays)
+
+
+def save_refined_cameras(out, cameras: list[Camera]) -> None:
+    """The refined training cameras into the run folder ``out``: ``cameras_refined.json`` (``{"train": [...]}``, the
+    camera JSON of ``mi-gs render --camera``) and ``images_refined.txt`` (COLMAP's ``images.txt``, one camera id per
+    distinct intrinsics, in order of appearance), each written atomically."""
+    import json
+    from pathlib import Path
+
+    from ..data.colmap import images_text
+    from ..io_utils import atomic_write_text
+    from ..run_folder import REFINED_CAMERAS, REFINED_IMAGES
+
+    out = Path(out)
+    atomic_write_text(out / REFINED_CAMERAS, json.dumps({"train": [c.to_dict() for c in cameras]}, indent=1) + "\n")
+    ids: dict = {}
+    cids = [ids.setdefault((c.width, c.height, c.fx, c.fy, c.cx, c.cy), len(ids) + 1) for c in cameras]
+    atomic_write_text(out / REFINED_IMAGES, images_text([c.name for c in cameras],
+                                                        [c.world_to_camera for c in cameras], cids))
