@@ -5,13 +5,14 @@ datasets, scored exactly as ours are: the training comparison of the GPU benchma
     python benchmarks/train.py mi_objects_colmap --milestones 7000 --schedule 30000 --variant cuda_ad_rgb  # ours
 
 Needs PyTorch, gsplat and a CUDA device (``gsplat_peer.available()``). The recipe, as ``simple_trainer.py`` has it:
-SfM points, scales from the mean squared distance to the 3 nearest neighbours, random quaternions
+the initial points, scales from the mean squared distance to the 3 nearest neighbours, random quaternions
 (``torch.rand``), opacity 0.1, degree-3 SH (one more degree every 1000 steps); Adam (eps 1e-15) with lrs means
 1.6e-4 x scene scale (decayed to 1 % over the schedule), scales 5e-3, quats 1e-3, opacities 5e-2, SH DC 2.5e-3, SH rest
 2.5e-3 / 20; loss 0.8 L1 + 0.2 (1 - SSIM) (SSIM over the valid region, as ``fused_ssim(padding="valid")``);
 ``DefaultStrategy`` with its defaults (refine from 500 to 15k every 100 steps, opacity reset every 3000); one image per
 step, shuffled each epoch; ``packed=False``; near plane 0.01. Differences, so that both fit the same data: the dataset
-is loaded by our loader (same images, cameras, train/test split and SfM points) without gsplat's world normalization
+is loaded by our loader (same images, cameras, train/test split, and the initial points ``mi-gs optimize`` starts
+from: the layout's SfM points, else triangulated from the posed images) without gsplat's world normalization
 (the lengths it uses are relative to the scene scale, ours ``Dataset.extent``, its ``scene_scale * 1.1``, except the
 near plane, 0.01 here in the dataset's units, in its normalized world there), and it renders over the dataset's
 background (white for mi_objects/colmap, as our run) where simple_trainer has none.
@@ -191,6 +192,8 @@ def main(argv=None) -> int:
     ap.add_argument("--variant", default="cuda_ad_rgb", help="our variant, for loading and the cross-check render")
     ap.add_argument("--seed", type=int, default=42)
     ap.add_argument("--out", default=None, help="write the rows as JSON here")
+    ap.add_argument("--cache", default="/tmp/mi_gs_gsplat_train",
+                    help="where initial points triangulated from the posed images are cached (CACHE/points)")
     args = ap.parse_args(argv)
 
     import gsplat_peer
@@ -201,13 +204,19 @@ def main(argv=None) -> int:
     import mitsuba as mi
 
     mi.set_variant(args.variant)
-    import mi_gaussians as mig
     folder, res, bg, note = DATASETS[args.dataset]
     if not (DATA / folder).exists():
         raise SystemExit(f"gsplat_train.py: {DATA / folder} is missing")
-    ds = mig.load_dataset(DATA / folder, resolution=res, background=bg)
+    # the points `mi-gs optimize` starts from with the same data settings (data.init 'auto': the layout's own, else
+    # triangulated from the posed images, cached in --cache), so that both start from the same points
+    from mi_gaussians.config import TrainConfig
+    from mi_gaussians.runs import training_dataset
+
+    cfg = TrainConfig().with_settings([f"data.resolution={res}", "data.background=" + ",".join(map(str, bg))])
+    ds = training_dataset(DATA / folder, cfg, Path(args.cache), progress=False,
+                          log=lambda line: print(line, file=sys.stderr, flush=True))
     print(f"{why}; {args.dataset} ({note}): {len(ds.train)} train / {len(ds.test)} test views, "
-          f"{len(ds.points_xyz):,} points, scene scale {ds.extent:.3f}", flush=True)
+          f"{len(ds.points_xyz):,} points ({ds.points_from}), scene scale {ds.extent:.3f}", flush=True)
     rows = train(ds, sorted(args.milestones), max(args.schedule, max(args.milestones)), args.seed)
     print("\n| trainer | iterations | test PSNR | test SSIM | same model, our renderer | Gaussians | minutes | it/s |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|")

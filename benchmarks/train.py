@@ -30,7 +30,7 @@ DATASETS = {
     "mi_objects_colmap": ("mi_objects/colmap", 1, (1.0, 1.0, 1.0), "200x200, SfM points, white background"),
     "mi_objects_colmap_black": ("mi_objects/colmap", 1, (0.0, 0.0, 0.0), "200x200, SfM points, black background"),
     "mi_room_colmap": ("mi_room/colmap", 1, (0.0, 0.0, 0.0), "256x256, SfM points"),
-    "fox": ("fox", 4, (0.0, 0.0, 0.0), "-r 4: 267x474 after undistortion, random init"),
+    "fox": ("fox", 4, (0.0, 0.0, 0.0), "-r 4: 267x474 after undistortion, points triangulated from the posed images"),
     "maryrose": ("maryrose", 8, (1.0, 1.0, 1.0), "-r 8: 432x432 after undistortion, masked (masks/), SfM points"),
 }
 
@@ -44,6 +44,7 @@ def run_one(name: str, milestones: list[int], out_root: Path, variant: str, sche
     from mi_gaussians.config import DataConfig, TrainConfig
     from mi_gaussians.evaluate import evaluate_views, summarize
     from mi_gaussians.optim.trainer import Trainer
+    from mi_gaussians.runs import training_dataset
 
     folder, res, bg, note = DATASETS[name]
     path = DATA / folder
@@ -57,8 +58,9 @@ def run_one(name: str, milestones: list[int], out_root: Path, variant: str, sche
                        save_iterations=tuple(milestones)).with_iterations(schedule)
     cfg = dataclasses.replace(base, optim=dataclasses.replace(base.optim, iterations=iters),
                               save_iterations=tuple(milestones), freeze=freeze)
-    ds = mig.load_dataset(path, resolution=res, background=bg)
     out = out_root / (name if schedule == iters else f"{name}_of_{schedule}")
+    # (the points `mi-gs optimize` starts from: the layout's own, else triangulated from the posed images)
+    ds = training_dataset(path, cfg, out, progress=False, log=lambda line: print(line, file=sys.stderr))
     tr = Trainer(ds, cfg, out, progress=True)
     metrics = tr.run(resume=(out / "checkpoints" / "ckpt.npz").exists())
     h = tr.history
