@@ -308,6 +308,8 @@ def test_command_line(tmp_path):
             "--random-points", 500, "--quiet", "--eval-every", 0)
     assert r.returncode == 0, r.stderr
     assert json.loads((out / "config.json").read_text())["train"]["optim"]["pose_opt"] is True
+    printed = json.loads(r.stdout)
+    assert printed["pose_rotation_error_degrees"]["start"] == pytest.approx(0.5, abs=1e-6)
     poses = json.loads((out / "metrics.json").read_text())["poses"]
     assert poses["optimized"] and poses["rotation_error_degrees"]["start"] == pytest.approx(0.5, abs=1e-6)
     assert poses["translation_error_of_extent"]["start"] == pytest.approx(0.01, rel=1e-3)

@@ -61,8 +61,12 @@ def run(args) -> int:
         print(f"mi-gs: {_stopped_line(e, args, src, out)}", file=sys.stderr, flush=True)
         return 128 + e.signum
     metrics = result.metrics
-    print(json.dumps({"output": str(out), **metrics["mean"], "gaussians": metrics["gaussians"],
-                      "training_seconds": metrics["training_seconds"]}, indent=2), flush=True)
+    summary = {"output": str(out), **metrics["mean"], "gaussians": metrics["gaussians"],
+               "training_seconds": metrics["training_seconds"]}
+    if "poses" in metrics:          # (--pose-opt, data.pose_noise: the training cameras' errors, start and end)
+        summary["pose_rotation_error_degrees"] = metrics["poses"]["rotation_error_degrees"]
+        summary["pose_translation_error_of_extent"] = metrics["poses"]["translation_error_of_extent"]
+    print(json.dumps(summary, indent=2), flush=True)
     if result.watcher is not None and result.watcher.viewer is not None:
         _serve_until_stopped(result.watcher)
     return 0
