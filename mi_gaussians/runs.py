@@ -312,8 +312,7 @@ def initial_points(ds: Dataset, cfg: TrainConfig, cache: Path, log: Callable[[st
     except NoPoints as e:
         if init == "triangulate":
             raise
-        # (a note, kept by --quiet: the run starts from other points than it would have)
-        say(f"note: initial points: {n_random:,} random in the cube, since no points could be triangulated ({e})")
+        say(f"initial points: {n_random:,} random in the cube, since no points could be triangulated ({e})")
         return ds
     line = f"initial points: {len(tri.xyz):,} triangulated from the {len(ds.train)} posed training images"
     if init == "auto" and ds.points_xyz is not None and len(ds.points_xyz) and _has_alpha(ds):
