@@ -135,7 +135,7 @@ def options() -> list[Option]:
                     "left half, the right half scored)"}),
         Option(("--pose-opt",), ("optim.pose_opt",), _store_true(
             "refine the training cameras with the Gaussians (gsplat's pose_opt: a rotation and translation per "
-            f"camera, Adam at {o.pose_opt_lr:g}, optim.pose_opt_lr); the refined cameras are written to "
+            f"camera, sparse Adam at {o.pose_opt_lr:g}, optim.pose_opt_lr); the refined cameras are written to "
             "cameras_refined.json and images_refined.txt, test cameras stay as given")),
         Option(("--strategy",), ("strategy",), {
             "choices": tuple(STRATEGIES),
