@@ -362,18 +362,13 @@ def refined_training_cameras(ds: Dataset, out: str | Path, log: Callable[[str], 
     """``ds`` (the dataset of the run in ``out``) with the training cameras the run refined (``--pose-opt``:
     ``cameras_refined.json``), matched by name; ``ds`` as it is where the run has none, or (said in one line to
     ``log``) where the file is damaged or holds other views."""
-    from .data.camera import Camera
-    from .io_utils import read_json_object
     from .run_folder import REFINED_CAMERAS
 
     path = Path(out) / REFINED_CAMERAS
     if not path.is_file():
         return ds
     try:
-        entries = read_json_object(path, "refined cameras", '{"train": [camera, ...]}').get("train")
-        if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
-            raise ValueError(f"{path}: expected \"train\": a list of cameras")
-        refined = {c.name: c for c in (Camera.from_dict(e, source=str(path)) for e in entries)}
+        refined = _refined_cameras(path)
         if sorted(refined) != sorted(v.name for v in ds.train):
             raise ValueError(f"{path}: its cameras are not the training views of the run's dataset")
     except ValueError as e:
@@ -381,6 +376,17 @@ def refined_training_cameras(ds: Dataset, out: str | Path, log: Callable[[str], 
             log(f"mi-gs: warning: {e}; the training views keep the dataset's cameras")
         return ds
     return dataclasses.replace(ds, train=[dataclasses.replace(v, camera=refined[v.name]) for v in ds.train])
+
+
+def _refined_cameras(path: Path) -> dict:
+    """The cameras of a run's ``cameras_refined.json`` by name (ValueError naming the file when it is damaged)."""
+    from .data.camera import Camera
+    from .io_utils import read_json_object
+
+    entries = read_json_object(path, "refined cameras", '{"train": [camera, ...]}').get("train")
+    if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+        raise ValueError(f"{path}: expected \"train\": a list of cameras")
+    return {c.name: c for c in (Camera.from_dict(e, source=str(path)) for e in entries)}
 
 
 def model_raster_config(model: str | Path, antialiased: bool | None = None,
@@ -418,7 +424,19 @@ def model_run_cameras(model: str | Path, ds: Dataset, log: Callable[[str], None]
         return ds
     if Path(record.dataset).resolve() != Path(ds.root).resolve() or record.train.data.resolution != ds.resolution:
         return ds
-    refined = refined_training_cameras(ds, folder, log)
-    if refined is not ds and log is not None:
-        log(f"note: the training views use the cameras the run refined ({folder / REFINED_CAMERAS})")
-    return refined
+    path = folder / REFINED_CAMERAS
+    try:            # (by name, in either split: the run may have split the views otherwise, e.g. --test-every 0)
+        refined = _refined_cameras(path)
+        if not set(refined) <= {v.name for v in ds.views}:
+            raise ValueError(f"{path}: its cameras are not views of {ds.root}")
+    except ValueError as e:
+        if log is not None:
+            log(f"mi-gs: warning: {e}; the training views keep the dataset's cameras")
+        return ds
+    if log is not None:
+        log(f"note: the run's training views use the cameras it refined ({path})")
+
+    def moved(views):
+        return [dataclasses.replace(v, camera=refined[v.name]) if v.name in refined else v for v in views]
+
+    return dataclasses.replace(ds, train=moved(ds.train), test=moved(ds.test))

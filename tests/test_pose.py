@@ -317,16 +317,36 @@ def test_command_line(tmp_path):
     assert "cameras_refined.json" in created and "images_refined.txt" in created
     refined = json.loads((out / "cameras_refined.json").read_text())["train"]
     ds = run_dataset(RunRecord.read(out, ""), out)
+    assert len(refined) == len(ds.train)
     for v, c in zip(ds.train, refined):
         assert v.name == c["name"] and np.allclose(v.camera.world_to_camera, c["world_to_camera"])
     given = mig.load_dataset(data)
     for v, g in zip(ds.test, given.test):
         np.testing.assert_array_equal(v.camera.world_to_camera, g.camera.world_to_camera)
     r = run("render", out / "point_cloud.ply", "--dataset", data, "--split", "train", "-o", tmp_path / "renders")
-    assert r.returncode == 0 and "cameras the run refined" in r.stderr, r.stderr
+    assert r.returncode == 0 and "use the cameras it refined" in r.stderr, r.stderr
     assert run("eval", out).returncode == 0
     r = run("optimize", data, "-o", out, "--resume", "--iterations", 45, "--quiet")
     assert r.returncode == 0, r.stderr
     (out / "cameras_refined.json").write_text("{")                     # damaged: one line, the given cameras
     r = run("render", out / "point_cloud.ply", "--dataset", data, "--split", "train", "-o", tmp_path / "again")
-    assert r.returncode == 0 and "cameras_refined.json" in r.stderr and "keep the dataset's cameras" in r.stderr
+    assert r.returncode == 0 and "keep the dataset's cameras" in r.stderr, r.stderr
+    (line,) = [ln for ln in r.stderr.splitlines() if "cameras_refined.json" in ln]     # one line, naming the file
+    assert line.startswith("mi-gs: warning: ") and str(out / "cameras_refined.json") in line
+
+
+def test_a_run_without_test_views_renders_and_scores_through_its_refined_cameras(tmp_path):
+    """A COLMAP run with --test-every 0 (every view a training view): render --dataset (which splits the views its own
+    way) still finds the refined cameras, by name in either split; the run scores its training view through its
+    refined camera."""
+    from test_cli import run
+
+    data = Path(__file__).parent / "data" / "tiny_colmap"
+    out = tmp_path / "run"
+    r = run("optimize", data, "-o", out, "--iterations", 30, "--pose-opt", "--test-every", 0,
+            "--set", "data.pose_noise=0.5,0", "--random-points", 500, "--quiet", "--eval-every", 0)
+    assert r.returncode == 0, r.stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["split"].startswith("train")
+    r = run("render", out / "point_cloud.ply", "--dataset", data, "--split", "all", "-o", tmp_path / "renders")
+    assert r.returncode == 0 and "use the cameras it refined" in r.stderr and "warning" not in r.stderr, r.stderr

@@ -12,7 +12,7 @@ import numpy as np
 from ..io_utils import atomic_path
 
 #: sections whose floating-point arrays must be finite for the run to continue from them
-FINITE = ("param", "adam", "exposure")
+FINITE = ("param", "adam", "exposure", "pose")
 
 
 def write(path: Path, sections: dict[str, dict[str, np.ndarray]], meta: dict) -> None:

@@ -25,6 +25,7 @@ A non-finite loss or parameter stops the run with :class:`TrainingDiverged`; the
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -494,6 +495,8 @@ class Trainer:
         self._stop_if_asked()
         g.save_ply(self.out / run_folder.MODEL)
         views = self.ds.test if self.ds.test else self.ds.train[:1]
+        if not self.ds.test and self.poses is not None:     # (a training view: through its refined camera, as eval)
+            views = [dataclasses.replace(views[0], camera=self.poses.cameras([views[0].camera])[0])]
         scores, note = evaluate_views(g, views, self.background, cfg=self.cfg.raster, keep_images=True,
                                       color_space=self.ds.color_space)
         self._stop_if_asked()
