@@ -288,3 +288,60 @@ def test_render_api_shapes_and_errors():
         mig.render(g, cam, sh_degree=2)
     with pytest.raises(ValueError, match="background"):
         mig.render(g, cam, background=(1, 1))
+
+
+# ------------------------------------------------------------------------------------------------ lane layouts
+# Each backend maps pixels to lanes its own way (raster/blend.py, LANE_LAYOUTS). Every layout runs here on the CPU,
+# the CUDA one included, against the same references.
+from mi_gaussians.raster import blend as blend_module  # noqa: E402
+from mi_gaussians.raster.blend import LANE_LAYOUTS, LaneLayout  # noqa: E402
+
+LAYOUTS = {**LANE_LAYOUTS, "one_pixel": LaneLayout(pixels=1, start_lanes=256),
+           "column": LaneLayout(pixels=16, start_lanes=1)}
+
+
+@pytest.fixture(params=sorted(LAYOUTS))
+def each_layout(request, monkeypatch):
+    monkeypatch.setattr(blend_module, "lane_layout", lambda: LAYOUTS[request.param])
+    return request.param
+
+
+@pytest.mark.parametrize("name", ["border_and_outside", "principal_point_off_centre", "opaque_stack", "random"])
+def test_every_lane_layout_matches_the_reference(each_layout, name):
+    make = sf.SCENES.get(name) or (lambda seed: sf.random_scene(seed, n=40, sh_degree=2, width=53, height=37))
+    params, cam = make(seed=0)
+    dtype = np.float32 if name in FLOAT32_DECISIONS else np.float64
+    _compare(render_numpy(params, cam, background=BACKGROUND),
+             render_reference(params, cam, background=BACKGROUND, dtype=dtype))
+
+
+def test_every_lane_layouts_gradients_match_finite_differences(each_layout):
+    params, cam = sf.random_scene(seed=12, n=10, sh_degree=1, width=37, height=21)
+    assert _check_fd(params, cam, np.arange(10), random_weights(cam, seed=1)) > 100
+
+
+def test_lane_layouts_agree_with_each_other():
+    """Images bit for bit, gradients up to the order of float sums, between every pair of layouts (a 53 x 37 image:
+    partial tiles on both axes; 300 Gaussians: lanes of a group with different last contributors)."""
+    params, cam = sf.random_scene(seed=31, n=300, sh_degree=3, width=53, height=37)
+    weights = random_weights(cam, seed=2)
+    results = {}
+    for name, layout in LAYOUTS.items():
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(blend_module, "lane_layout", lambda layout=layout: layout)
+            grads, out = gradients_numpy(params, cam, weights, background=BACKGROUND)
+            results[name] = (np.array(out.rgb), np.array(out.alpha), grads)
+    base_rgb, base_alpha, base_grads = results["llvm"]
+    for name, (rgb, alpha, grads) in results.items():
+        np.testing.assert_array_equal(rgb, base_rgb, err_msg=name)
+        np.testing.assert_array_equal(alpha, base_alpha, err_msg=name)
+        for k in NAMES:
+            scale = max(np.abs(base_grads[k]).max(), 1e-6)
+            np.testing.assert_allclose(grads[k], base_grads[k], rtol=0, atol=1e-5 * scale, err_msg=f"{name} {k}")
+
+
+def test_lane_layout_rejects_what_the_kernels_cannot_map():
+    with pytest.raises(ValueError, match="pixels = 3"):
+        LaneLayout(pixels=3, start_lanes=16)
+    with pytest.raises(ValueError, match="start_lanes = 64"):
+        LaneLayout(pixels=8, start_lanes=64)        # a tile has 32 lanes of 8 pixels
