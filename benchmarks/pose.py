@@ -2,7 +2,7 @@
 ``--pose-opt``, through the command line; held-out PSNR / SSIM and the training cameras' errors before and after.
 
     python benchmarks/pose.py mi_objects_colmap_r2 --noise 1 0.01            # exact, noisy, noisy + --pose-opt
-    python benchmarks/pose.py mi_objects_colmap_r2 --noise 1 0.01 --lr 1e-5 1e-4 3e-4
+    python benchmarks/pose.py mi_objects_colmap_r2 --noise 1 0.01 --lr 1e-5 1e-4 3e-4 1e-3:0.01   # LR[:DECAY]
     python benchmarks/pose.py fox --noise 0 0                                 # a real capture: with and without
 
 Runs are kept in --out (default /tmp/mi_gs_pose/<dataset>/<setup>) and reused; an interrupted one resumes. The
@@ -26,17 +26,19 @@ DATASETS = {**ABLATION_DATASETS,
             "mi_room_colmap_r2": ("mi_room/colmap", ["-r", "2"])}
 
 
-def setups(noise: tuple[float, float], lrs: list[float | None]) -> dict[str, list[str]]:
+def setups(noise: tuple[float, float], lrs: list[str | None]) -> dict[str, list[str]]:
     """setup name -> options: the exact cameras (when there is noise), the noisy ones, and --pose-opt at each rate
-    (None: the default)."""
+    (``LR`` or ``LR:DECAY``, optim.pose_opt_lr and optim.pose_opt_lr_decay; None: the default)."""
     deg, frac = noise
     noisy = ["--set", f"data.pose_noise={deg:g},{frac:g}"] if deg or frac else []
     out = {"exact": []} if noisy else {}
     out[f"noise_{deg:g}_{frac:g}" if noisy else "given"] = noisy
     for lr in lrs:
         name = ("noise" if noisy else "given") + f"{'_' + format(deg, 'g') + '_' + format(frac, 'g') if noisy else ''}"
-        name += "_pose_opt" + ("" if lr is None else f"_lr{lr:g}")
-        out[name] = noisy + ["--pose-opt"] + ([] if lr is None else ["--set", f"optim.pose_opt_lr={lr:g}"])
+        rate, _, decay = (lr or "").partition(":")
+        name += "_pose_opt" + (f"_lr{float(rate):g}" if rate else "") + (f"_decay{float(decay):g}" if decay else "")
+        out[name] = noisy + ["--pose-opt"] + (["--set", f"optim.pose_opt_lr={float(rate):g}"] if rate else []) + \
+            (["--set", f"optim.pose_opt_lr_decay={float(decay):g}"] if decay else [])
     return out
 
 
@@ -44,7 +46,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("datasets", nargs="+", choices=sorted(DATASETS))
     ap.add_argument("--noise", type=float, nargs=2, default=(1.0, 0.01), metavar=("DEGREES", "FRACTION"))
-    ap.add_argument("--lr", type=float, nargs="*", default=None, help="pose learning rates (default: the default)")
+    ap.add_argument("--lr", nargs="*", default=None, metavar="LR[:DECAY]",
+                    help="pose learning rates, each with its decay factor (default: the default)")
     ap.add_argument("--only", nargs="*", default=None, help="run only these setups")
     ap.add_argument("--iterations", type=int, default=7000)
     ap.add_argument("--out", type=Path, default=Path("/tmp/mi_gs_pose"))

@@ -136,8 +136,10 @@ class OptimConfig:
     exposure_grid_tv: float = 10.0           # bilateral: weight of the grids' total variation (gsplat's)
     pose_opt: bool = False                   # --pose-opt: learn a rigid correction of every training camera
                                              # (optim/pose.py, gsplat's pose_opt)
-    pose_opt_lr: float = 1e-4                # its Adam's rate, constant: 10x gsplat's 1e-5, since ours is sparse (a
-                                             # camera steps only where it is rendered); measured, README
+    pose_opt_lr: float = 1e-4                # its Adam's rate at the start: 10x gsplat's 1e-5, since ours is sparse
+                                             # (a camera steps only where it is rendered); measured, README
+    pose_opt_lr_decay: float = 1.0           # ... decaying exponentially to this fraction of it over
+                                             # position_lr_max_steps (1: constant, as gsplat's)
     pose_opt_reg: float = 1e-6               # its L2 weight decay (gsplat's pose_opt_reg)
 
     def with_depth_weight(self, weight: float) -> "OptimConfig":
@@ -359,6 +361,7 @@ RULES: dict[str, "Range | tuple[str, ...]"] = {
     "data.background": Range(0), "data.pose_noise": Range(0, counts=(2, 2)),
     "optim.iterations": _COUNT, "optim.position_lr_max_steps": _COUNT, "optim.sh_degree": Range(0, 3),
     "optim.sh_increase_interval": _COUNT, "optim.lambda_dssim": _FRACTION, "optim.adam_eps": _POSITIVE,
+    "optim.pose_opt_lr_decay": _POSITIVE,
     "optim.exposure": EXPOSURES, "optim.ssim_padding": SSIM_PADDINGS, "optim.exposure_grid": Range(2, counts=(3, 3)),
     "densify.densification_interval": _COUNT, "densify.split_count": _COUNT,
     "densify.split_scale_divisor": _POSITIVE, "densify.min_opacity": Range(0, 1, open_high=True),

@@ -141,6 +141,16 @@ def test_sparse_step_moves_only_the_rendered_camera_and_decays_it():
     assert np.all(deltas.deltas()[2] == 0)
 
 
+def test_the_rate_decays_over_the_schedule():
+    cfg = OptimConfig(pose_opt_lr=1e-3, pose_opt_lr_decay=0.01, position_lr_max_steps=1000)
+    deltas = PoseDeltas(2, cfg, EXTENT)
+    assert deltas.learning_rate(0) == pytest.approx(1e-3)
+    assert deltas.learning_rate(500) == pytest.approx(1e-4)              # the geometric mean, halfway
+    assert deltas.learning_rate(1000) == pytest.approx(1e-5) == deltas.learning_rate(5000)
+    assert PoseDeltas(2, OptimConfig(pose_opt_lr=2e-4), EXTENT).learning_rate(700) == 2e-4      # (default: constant)
+    assert PoseDeltas(2, OptimConfig(pose_opt_lr=0.0, pose_opt_lr_decay=0.1), EXTENT).learning_rate(700) == 0.0
+
+
 def test_masked_step_changes_nothing():
     params, cam = sf.random_scene(seed=6, n=10, sh_degree=0, width=24, height=20)
     g = mig.Gaussians.from_numpy(**params)
@@ -206,6 +216,8 @@ def test_pose_settings_are_checked():
         TrainConfig().with_settings(["data.pose_noise=-1,0"])
     with pytest.raises(ValueError, match="optim.pose_opt_lr"):
         TrainConfig().with_settings(["optim.pose_opt_lr=-1e-5"])
+    with pytest.raises(ValueError, match="optim.pose_opt_lr_decay"):
+        TrainConfig().with_settings(["optim.pose_opt_lr_decay=0"])
 
 
 # ------------------------------------------------------------------------------------------------ training runs
@@ -240,9 +252,9 @@ def test_a_zero_rate_trains_bit_for_bit_as_without(scene, tmp_path, one_thread):
 
 
 def test_frozen_and_traced_training_agree(scene, tmp_path, one_thread):  # noqa: F811
-    """With --pose-opt the frozen step (the view index an input, the correction gathered inside) trains exactly what
-    the traced loop trains, corrections included."""
-    cfg = _pose_cfg(small_config(120), pose_opt_lr=1e-4)
+    """With --pose-opt the frozen step (the view index and the decaying rate inputs, the correction gathered inside)
+    trains exactly what the traced loop trains, corrections included."""
+    cfg = _pose_cfg(small_config(120), pose_opt_lr=3e-4, pose_opt_lr_decay=0.03)
     frozen = _noisy_trainer(scene, cfg, tmp_path / "frozen")
     frozen.run()
     traced = _noisy_trainer(scene, dataclasses.replace(cfg, freeze=False), tmp_path / "traced")

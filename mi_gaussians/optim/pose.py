@@ -15,7 +15,9 @@ independent reference renderer).
 
 :class:`PoseDeltas` owns them as :class:`~.exposure.Exposure` owns the colour transforms: its own ``mi.ad.Adam``
 (PyTorch's eps 1e-8; gsplat's L2 weight decay 1e-6, ``optim.pose_opt_reg``), sparse (a step moves only the rendered
-camera's ``p_i``, its L2 term included: each step sees one view), at a constant rate ``optim.pose_opt_lr``. gsplat's
+camera's ``p_i``, its L2 term included: each step sees one view), at the rate ``optim.pose_opt_lr`` (constant unless
+``optim.pose_opt_lr_decay`` is set: then decaying exponentially to that fraction of it, an input of the frozen step
+like the positions' rate). gsplat's
 dense Adam at 1e-5 keeps moving every camera between its visits with the momentum of its last gradient; a sparse step
 moves a camera only on its own visits, about one step in N for N training images, so our default is ten times
 gsplat's rate (measured on mi_objects/colmap -r 2 with every camera turned by 1 degree and moved by 1 % of the scene:
@@ -39,6 +41,7 @@ from ..data.camera import Camera
 from ..drjit_utils import owned_array
 from ..raster.projection import ViewParams
 from .adam import export_state, import_state, masked_step, opaque_step_counts
+from .schedules import expon_lr
 
 KEY = "pose"
 WIDTH = 9                                      # dx (3), the 6D rotation's offset from the identity (6)
@@ -85,6 +88,7 @@ class PoseDeltas:
         self.n = int(n_images)
         self.extent = float(extent)
         self.weight_decay = float(cfg.pose_opt_reg)
+        self._rates = (float(cfg.pose_opt_lr), float(cfg.pose_opt_lr_decay), int(cfg.position_lr_max_steps))
         self._adam = mi.ad.Adam(lr=float(cfg.pose_opt_lr), epsilon=1e-8, mask_updates=True)
         self._adam[KEY] = mi.TensorXf(dr.zeros(mi.Float, self.n * WIDTH), (self.n, WIDTH))
         opaque_step_counts(self._adam, [KEY])
@@ -106,6 +110,19 @@ class PoseDeltas:
         flat = self.tensor.array
         p = [dr.gather(mi.Float, flat, index * WIDTH + k) for k in range(WIDTH)]
         return adjusted_view(view, p, self.extent)
+
+    def learning_rate(self, step: int) -> float:
+        """The rate at the 1-based iteration ``step``: ``optim.pose_opt_lr`` decaying exponentially to
+        ``optim.pose_opt_lr_decay`` times itself over the run's schedule (``position_lr_max_steps``); constant when
+        that factor is 1 (or the rate 0)."""
+        lr, decay, max_steps = self._rates
+        if decay == 1.0 or lr == 0.0:
+            return lr
+        return expon_lr(step, lr, lr * decay, max_steps)
+
+    def set_learning_rate(self, lr) -> None:
+        """A Python float, or a 1-element ``mi.Float`` (inside a frozen step)."""
+        self._adam.set_learning_rate({KEY: lr if dr.is_array_v(lr) else float(lr)})
 
     def step(self, index, active=None) -> None:
         """One Adam step of camera ``index``'s correction from the gradient of the last backward pass, its L2 weight

@@ -69,6 +69,7 @@ class StepInputs:
     view_index: "mi.UInt32 | None" = None       # the training view (1 element), whose colour compensation and pose
                                                 # correction apply
     exposure_lr: "mi.Float | None" = None       # this iteration's exposure learning rate (1 element)
+    pose_lr: "mi.Float | None" = None           # this iteration's pose-correction learning rate (1 element)
 
 
 def composite_target(target, transparency, background, fixed_background) -> "mi.TensorXf":
@@ -133,6 +134,7 @@ class TrainStep:
                 exposure.set_learning_rate(inputs.exposure_lr)
                 exposure.step(active=ok)
             if pose is not None:
+                pose.set_learning_rate(inputs.pose_lr)
                 pose.step(inputs.view_index, active=ok)
             return loss, ok, mi.UInt32(out.n_instances)
 

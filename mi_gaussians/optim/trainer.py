@@ -250,6 +250,7 @@ class Trainer:
             self.exposure.set_learning_rate(dr.opaque(mi.Float, self.exposure.learning_rate(step)))
             self.exposure.step()
         if self.poses is not None:             # (every iteration, as gsplat's pose optimizer)
+            self.poses.set_learning_rate(dr.opaque(mi.Float, self.poses.learning_rate(step)))
             self.poses.step(idx)
         if refines:
             self._refine_at = step
@@ -302,7 +303,9 @@ class Trainer:
                             view_index=None if self.exposure is None and self.poses is None
                             else dr.opaque(mi.UInt32, idx),
                             exposure_lr=None if self.exposure is None
-                            else dr.opaque(mi.Float, self.exposure.learning_rate(step)))
+                            else dr.opaque(mi.Float, self.exposure.learning_rate(step)),
+                            pose_lr=None if self.poses is None
+                            else dr.opaque(mi.Float, self.poses.learning_rate(step)))
         degree = sh_degree_at(step, self.params.gaussians.sh_degree, cfg.optim.sh_increase_interval)
         if self._valid is None:
             self._valid = dr.opaque(mi.Bool, True)
