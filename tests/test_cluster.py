@@ -530,3 +530,53 @@ def test_resources_must_fit_on_one_node():
         check_resources(ray, 8, 1, "s.toml: resources")
     with pytest.raises(ValueError, match=r"resources.gpus: 2 per run, but the largest node has 1"):
         check_resources(ray, 1, 2, "s.toml: resources")
+
+
+RAYLET_DIED = ("\x1b[33m(raylet)\x1b[0m Raylet is terminated. Termination is unexpected. Possible reasons include: (1) "
+               "SIGKILL by the user or system OOM killer. Last 20 lines of the Raylet logs:\n"
+               "    [state-dump] \tNodeManager.GCTaskFailureReason - 1 total (1 active), Execution time: mean = 0.00ms\n"
+               "    [state-dump] \tray::rpc::NodeInfoGcsService.grpc_client.RegisterNode - 1 total (0 active)\n")
+
+
+def test_what_the_cluster_pushes_to_the_driver_is_one_line_on_stderr(capfd):
+    """A raylet's death reaches every driver as a message that Ray's own thread prints to stdout, with colour codes
+    and 20 lines of the raylet's state dumps (seen with a node killed under a real two-node sweep; `log_to_driver`
+    does not turn it off): while connected, it is one line on stderr, said once, and stdout stays the results'."""
+    import ray
+    import ray._private.worker as ray_worker
+
+    from mi_gaussians.cluster.ray_cluster import cluster_messages_to_stderr
+
+    # (the hook point: Ray's listener calls the module's printer by name, for every message)
+    assert "print_to_stdstream(" in __import__("inspect").getsource(ray_worker.listen_error_messages)
+    message = {"lines": [RAYLET_DIED], "pid": "raylet", "is_err": False}
+    with cluster_messages_to_stderr(ray):
+        ray_worker.print_to_stdstream(message, ignore_prefix=False)
+        ray_worker.print_to_stdstream(dict(message), ignore_prefix=False)
+    out, err = capfd.readouterr()
+    assert out == ""
+    assert err.splitlines() == ["ray: (raylet) Raylet is terminated. Termination is unexpected. Possible reasons "
+                                "include: (1) SIGKILL by the user or system OOM killer."]
+    ray_worker.print_to_stdstream(message, ignore_prefix=False)      # (afterwards: Ray's own printer again)
+    assert "[state-dump]" in capfd.readouterr().out
+
+
+def test_a_cluster_with_token_authentication_is_named_in_the_error(monkeypatch):
+    """`ray start` turns token authentication on (Ray >= 2.52); a driver without RAY_AUTH_MODE=token is refused after
+    Ray's retries: the one line says what to set."""
+    import ray
+
+    from mi_gaussians.cluster import ray_cluster
+
+    def refused(*args, **kwargs):
+        raise ConnectionError("Failed to connect to Ray cluster at 10.0.0.1:6379")
+
+    monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
+    monkeypatch.setattr(ray_cluster, "check_reachable", lambda address, seconds: None)
+    monkeypatch.setattr(ray, "init", refused)
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    with pytest.raises(ValueError) as e:
+        with ray_cluster.connected("10.0.0.1:6379"):
+            pass
+    assert "\n" not in str(e.value) and "RAY_AUTH_MODE=token" in str(e.value)
+    assert str(e.value).startswith("--address 10.0.0.1:6379: cannot join the Ray cluster there")

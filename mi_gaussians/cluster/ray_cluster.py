@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
+import sys
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
@@ -99,11 +101,60 @@ def connected(address: str | None = None, num_cpus: int | None = None, connect_s
             ray.init(num_cpus=num_cpus, **kwargs)
     except (ConnectionError, RuntimeError, ValueError) as e:
         where = f"--address {address}: cannot join the Ray cluster there" if address else "cannot start Ray"
-        raise ValueError(f"{where} ({' '.join(str(e).split())[:200]})") from None
+        hint = ""
+        if address and os.environ.get("RAY_AUTH_MODE", "") != "token":
+            hint = ("; a cluster started with token authentication (Ray's default for `ray start` since 2.52) "
+                    "needs RAY_AUTH_MODE=token here, and its token (~/.ray/auth_token or RAY_AUTH_TOKEN)")
+        raise ValueError(f"{where} ({' '.join(str(e).split())[:200]}){hint}") from None
     try:
-        yield ray
+        with cluster_messages_to_stderr(ray):
+            yield ray
     finally:
         ray.shutdown()
+
+
+_ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
+_LOG_TAIL = re.compile(r"\s*Last \d+ lines of the \w+ logs:\s*$")     # (the lines we leave out)
+
+
+def cluster_message_line(lines) -> str:
+    """One line for a message the cluster pushes to its drivers (``lines``: Ray's, e.g. a raylet's death with
+    the last lines of its log, its state dumps): the first line that says something, without colour codes."""
+    for text in lines:
+        for line in str(text).splitlines():
+            line = _LOG_TAIL.sub("", " ".join(_ANSI.sub("", line).split()))
+            if line and not line.startswith("[state-dump]"):
+                return line
+    return ""
+
+
+@contextlib.contextmanager
+def cluster_messages_to_stderr(ray):
+    """While the block runs, the messages Ray's driver prints for the cluster (a thread of ``ray.init`` writes them
+    to stdout with colour codes, a raylet's death with 20 lines of its state dumps; ``log_to_driver`` does not turn
+    it off) go to stderr as one line each, once: ``ray: <what it said>`` (for a dead node, the runs' rows then say
+    what it meant for them). Other output of Ray's printer is left as it is. Ray without that printer
+    (``ray._private.worker.print_to_stdstream``, Ray 2.x): nothing changes."""
+    worker = getattr(getattr(ray, "_private", None), "worker", None)
+    original = getattr(worker, "print_to_stdstream", None)
+    if original is None:
+        yield
+        return
+    said = set()
+
+    def printer(data, *args, **kwargs):
+        if not (isinstance(data, dict) and data.get("pid") == "raylet"):
+            return original(data, *args, **kwargs)
+        line = cluster_message_line(data.get("lines") or [])
+        if line and line not in said:
+            said.add(line)
+            print(f"ray: {line}", file=sys.stderr, flush=True)
+
+    worker.print_to_stdstream = printer
+    try:
+        yield
+    finally:
+        worker.print_to_stdstream = original
 
 
 def cluster_cpus(ray) -> int:
