@@ -386,3 +386,26 @@ def test_12_16_bit_pngs_are_read_at_full_precision(tmp_path):
     assert np.array_equal(np.round(read_image(tmp_path / "b.png") * 65535).astype(np.uint16), rgba[..., :3])
     # 8-bit reading of the same values would be off by up to 255/65535
     assert len(np.unique(np.round(got[..., 0] * 65535) % 257)) > 1
+
+
+def test_11_a_ctrl_c_before_the_serving_loop_still_stops_the_server_in_bound(trained, monkeypatch):
+    """SIGINT sent the moment `mi-gs view` prints its line can land before the serving loop begins; the server must
+    still be stopped through the bounded stop (in CI the command once outlived its SIGINT by more than 60 s)."""
+    from mi_gaussians.cli import main, view
+
+    stops = []
+    real_stop = view._stop_within
+
+    def start_then_interrupted(viewer, args):
+        viewer.start()
+        raise KeyboardInterrupt
+
+    def recording_stop(viewer, seconds, warn):
+        stops.append((viewer.server is not None, seconds))
+        real_stop(viewer, seconds, warn)
+        stops.append(viewer.server is None)
+
+    monkeypatch.setattr(view, "start_viewer", start_then_interrupted)
+    monkeypatch.setattr(view, "_stop_within", recording_stop)
+    assert main(["view", str(trained), "--port", str(_free_port())]) == 0
+    assert stops == [(True, view.STOP_SECONDS), True]

@@ -65,9 +65,12 @@ def run(args) -> int:
         initial = default_camera(g)
     viewer = Viewer(StaticModel(g), views, viewer_config(args), raster=raster, color_space=color_space,
                     background=bg, title=f"mi-gs view {src.name}", initial=initial)
-    start_viewer(viewer, args)
-    print(f"mi-gs view: {g.n:,} Gaussians at {viewer.url} (Ctrl-C stops)", flush=True)
+    # (from the server's start on, every way out stops it within the bound: a Ctrl-C that lands between the line
+    # below and the serving loop -- the moment a script that waits for the line sends it -- once left the server to
+    # the interpreter's exit, which waited for its threads for more than a minute in CI)
     try:
+        start_viewer(viewer, args)
+        print(f"mi-gs view: {g.n:,} Gaussians at {viewer.url} (Ctrl-C stops)", flush=True)
         viewer.serve_forever()
     except KeyboardInterrupt:                     # (how a viewer is meant to end: not an error)
         pass
