@@ -538,6 +538,14 @@ RAYLET_DIED = ("\x1b[33m(raylet)\x1b[0m Raylet is terminated. Termination is une
                "    [state-dump] \tray::rpc::NodeInfoGcsService.grpc_client.RegisterNode - 1 total (0 active)\n")
 
 
+TASK_RETRIED = ("Task train_task failed. There are 3 retries remaining, so the task will be retried. Error: Task failed "
+                "because the node it was running on is dead or unavailable. Node IP: 192.0.2.2, node ID: 2d48bc08.")
+
+
+MARKED_DEAD = ("The node with node id: 07d1c9cc and address: 192.0.2.2 and node name: 192.0.2.2 has been marked dead "
+               "because the detector has missed too many heartbeats from it.")
+
+
 def test_what_the_cluster_pushes_to_the_driver_is_one_line_on_stderr(capfd):
     """A raylet's death reaches every driver as a message that Ray's own thread prints to stdout, with colour codes
     and 20 lines of the raylet's state dumps (seen with a node killed under a real two-node sweep; `log_to_driver`
@@ -545,7 +553,7 @@ def test_what_the_cluster_pushes_to_the_driver_is_one_line_on_stderr(capfd):
     import ray
     import ray._private.worker as ray_worker
 
-    from mi_gaussians.cluster.ray_cluster import cluster_messages_to_stderr
+    from mi_gaussians.cluster.ray_cluster import NODE_DIED, cluster_messages_to_stderr
 
     # (the hook point: Ray's listener calls the module's printer by name, for every message)
     assert "print_to_stdstream(" in __import__("inspect").getsource(ray_worker.listen_error_messages)
@@ -555,8 +563,15 @@ def test_what_the_cluster_pushes_to_the_driver_is_one_line_on_stderr(capfd):
         ray_worker.print_to_stdstream(dict(message), ignore_prefix=False)
     out, err = capfd.readouterr()
     assert out == ""
-    assert err.splitlines() == ["ray: (raylet) Raylet is terminated. Termination is unexpected. Possible reasons "
-                                "include: (1) SIGKILL by the user or system OOM killer."]
+    assert err.splitlines() == [f"ray: {NODE_DIED}"]
+    with cluster_messages_to_stderr(ray):                           # (Ray's second message of the same death)
+        ray_worker.print_to_stdstream({"lines": [TASK_RETRIED], "pid": "raylet", "is_err": False}, ignore_prefix=False)
+        ray_worker.print_to_stdstream({"lines": [MARKED_DEAD], "pid": "raylet", "is_err": False}, ignore_prefix=False)
+        ray_worker.print_to_stdstream({"lines": [RAYLET_DIED], "pid": "raylet", "is_err": False}, ignore_prefix=False)
+        ray_worker.print_to_stdstream({"lines": ["\x1b[31mSomething else.\x1b[0m\nmore"], "pid": "raylet",
+                                       "is_err": False}, ignore_prefix=False)
+    out, err = capfd.readouterr()
+    assert out == "" and err.splitlines() == [f"ray: {NODE_DIED}", "ray: Something else."]
     ray_worker.print_to_stdstream(message, ignore_prefix=False)      # (afterwards: Ray's own printer again)
     assert "[state-dump]" in capfd.readouterr().out
 
@@ -580,3 +595,69 @@ def test_a_cluster_with_token_authentication_is_named_in_the_error(monkeypatch):
             pass
     assert "\n" not in str(e.value) and "RAY_AUTH_MODE=token" in str(e.value)
     assert str(e.value).startswith("--address 10.0.0.1:6379: cannot join the Ray cluster there")
+
+
+def _raylet_pids(session_root: Path) -> dict[str, int]:
+    """socket name -> pid of every raylet whose sockets lie under ``session_root`` (``raylet``: the head's)."""
+    found = {}
+    for proc in Path("/proc").iterdir():
+        try:
+            args = (proc / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        for a in args:
+            a = a.decode(errors="replace")
+            if a.startswith("--raylet_socket_name=") and str(session_root) in a:
+                found[Path(a.split("=", 1)[1]).name] = int(proc.name)
+    return found
+
+
+@pytest.mark.slow
+def test_a_dead_node_is_one_line_and_its_run_resumes_on_another(tmp_path):
+    """A real two-node cluster (`ray start`: a head and a second node of 1 CPU each, one run on each); once both runs
+    have checkpointed, the second node's raylet is killed (SIGKILL). The sweep ends by itself, both runs done (the
+    lost one resumed from its checkpoint on the head), stdout holds the results only (no colour codes, no state
+    dumps), and stderr says once what Ray said."""
+    import socket as socket_module
+
+    ray_exe = str(Path(sys.executable).parent / "ray")
+    with socket_module.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    temp = Path(tempfile.mkdtemp(prefix="rk", dir="/tmp"))      # (short: Ray's socket paths are limited)
+    env = {**os.environ, "RAY_AUTH_MODE": "disabled", "RAY_USAGE_STATS_ENABLED": "0"}
+    spec = write_spec(tmp_path / "spec.toml", f'datasets = ["{DATA / "tiny_blender"}"]\niterations = 1500\n'
+                                              'seeds = [0, 1]\n[set]\n"data.random_points" = 2000\neval_every = 0\n'
+                                              'checkpoint_every = 100\n[resources]\ncpus = 1\n')
+    out = tmp_path / "out"
+    subprocess.run([ray_exe, "start", "--head", f"--port={port}", "--num-cpus=1", "--include-dashboard=false",
+                    f"--temp-dir={temp}", "--node-ip-address=127.0.0.1"], env=env, check=True, capture_output=True,
+                   timeout=120)
+    try:
+        subprocess.run([ray_exe, "start", f"--address=127.0.0.1:{port}", "--num-cpus=1",
+                        "--node-ip-address=127.0.0.1"], env=env, check=True, capture_output=True, timeout=120)
+        sweep = subprocess.Popen([EXE, "sweep", str(spec), "-o", str(out), "--address", f"127.0.0.1:{port}"],
+                                 env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + 240
+            while min(checkpoint_step(out / "runs" / f"tiny_blender-s{k}") for k in (0, 1)) < 100:
+                assert time.monotonic() < deadline and sweep.poll() is None, "the runs did not checkpoint in time"
+                time.sleep(0.05)
+            raylets = _raylet_pids(temp)
+            assert set(raylets) == {"raylet", "raylet.1"}, raylets
+            os.kill(raylets["raylet.1"], signal.SIGKILL)
+            stdout, stderr = sweep.communicate(timeout=300)
+        finally:
+            if sweep.poll() is None:
+                sweep.kill()
+    finally:
+        subprocess.run([ray_exe, "stop", "--force"], env=env, capture_output=True, timeout=120)
+    assert sweep.returncode == 0, stderr[-3000:]
+    assert [r["status"] for r in rows(out)] == ["done", "done"], stderr[-3000:]
+    assert sum(r["resumed_at"] != "" for r in rows(out)) == 1
+    assert "\x1b[" not in stdout and "[state-dump]" not in stdout and "Raylet" not in stdout, stdout
+    assert stdout.splitlines()[-1].startswith("2 of 2 runs done")
+    said = [line for line in stderr.replace("\r", "\n").splitlines() if "ray: " in line]
+    from mi_gaussians.cluster.ray_cluster import NODE_DIED
+
+    assert said == [f"ray: {NODE_DIED}"], stderr[-3000:]

@@ -117,13 +117,26 @@ _ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
 _LOG_TAIL = re.compile(r"\s*Last \d+ lines of the \w+ logs:\s*$")     # (the lines we leave out)
 
 
+#: What we say for Ray's messages about a node's death (a raylet's end, a task failed with its node, retried)
+NODE_DIED = ("a node of the cluster died (its raylet ended); Ray runs what it held again on the other nodes, and "
+             "those runs resume from their checkpoints")
+
+
+# (Ray 2.60's words for it: the raylet's own end, the GCS's verdict on missed heartbeats, each lost task's retry)
+_NODE_DIED_WORDS = ("Raylet is terminated", "has been marked dead", "node it was running on is dead")
+
+
 def cluster_message_line(lines) -> str:
     """One line for a message the cluster pushes to its drivers (``lines``: Ray's, e.g. a raylet's death with
-    the last lines of its log, its state dumps): the first line that says something, without colour codes."""
+    the last lines of its log, its state dumps): ours for a node's death (:data:`NODE_DIED`; Ray sends two or three
+    messages for one: the raylet's end, the GCS's verdict, each task's retry), else the first line that says
+    something, without colour codes."""
     for text in lines:
         for line in str(text).splitlines():
             line = _LOG_TAIL.sub("", " ".join(_ANSI.sub("", line).split()))
             if line and not line.startswith("[state-dump]"):
+                if any(words in line for words in _NODE_DIED_WORDS):
+                    return NODE_DIED
                 return line
     return ""
 
@@ -148,7 +161,9 @@ def cluster_messages_to_stderr(ray):
         line = cluster_message_line(data.get("lines") or [])
         if line and line not in said:
             said.add(line)
-            print(f"ray: {line}", file=sys.stderr, flush=True)
+            from tqdm import tqdm
+
+            tqdm.write(f"ray: {line}", file=sys.stderr)     # (on a line of its own, under a progress bar too)
 
     worker.print_to_stdstream = printer
     try:
