@@ -71,7 +71,7 @@ def _our_gradient(params, cam, p0, weights):
 
 
 def _fd_gradient(params, cam, p0, weights, eps):
-    plist, cams = [], []
+    cams = []
     for k in range(9):
         for sign in (1.0, -1.0):
             p = np.array(p0, np.float64)
