@@ -44,3 +44,22 @@ def test_owned_array_copies():
     out = owned_array(mi.Float, a)
     a[:] = -1                                              # (a copy: later writes do not show through)
     assert np.array_equal(np.array(out), np.arange(10)) and len(owned_array(mi.Float, np.zeros(0))) == 0
+
+
+def test_exact_float_math_computes_a_times_zero():
+    """Dr.Jit's FastMath folds ``a * 0`` into 0 while tracing; the training iterations trace without it (LLVM), so the
+    frozen step and the traced loop compute the same thing (tests/test_mcmc.py's frozen = traced failed with it)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from mi_gaussians.drjit_utils import exact_float_math
+
+    a = dr.opaque(mi.Float, float("inf"), 3)
+    with exact_float_math():
+        exact = a * 0.0
+    if dr.backend_v(mi.Float) == dr.JitBackend.CUDA:
+        pytest.skip("CUDA keeps FastMath (its exact division and square root are software-emulated)")
+    assert np.all(np.isnan(np.array(exact)))
+    with dr.scoped_set_flag(dr.JitFlag.FastMath, True):
+        assert np.all(np.array(a * 0.0) == 0.0)            # (what the flag does: why the scope exists)
+    assert dr.flag(dr.JitFlag.FastMath)                     # (the scope restored it)

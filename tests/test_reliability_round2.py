@@ -394,7 +394,7 @@ def test_11_a_ctrl_c_before_the_serving_loop_still_stops_the_server_in_bound(tra
     from mi_gaussians.cli import main, view
 
     stops = []
-    real_stop = view._stop_within
+    real_stop = view.stop_within
 
     def start_then_interrupted(viewer, args):
         viewer.start()
@@ -406,6 +406,6 @@ def test_11_a_ctrl_c_before_the_serving_loop_still_stops_the_server_in_bound(tra
         stops.append(viewer.server is None)
 
     monkeypatch.setattr(view, "start_viewer", start_then_interrupted)
-    monkeypatch.setattr(view, "_stop_within", recording_stop)
+    monkeypatch.setattr(view, "stop_within", recording_stop)
     assert main(["view", str(trained), "--port", str(_free_port())]) == 0
     assert stops == [(True, view.STOP_SECONDS), True]

@@ -75,7 +75,7 @@ def run(args) -> int:
     except KeyboardInterrupt:                     # (how a viewer is meant to end: not an error)
         pass
     finally:
-        _stop_within(viewer, STOP_SECONDS, warn)
+        stop_within(viewer, STOP_SECONDS, warn)
     return 0
 
 
@@ -83,7 +83,7 @@ def run(args) -> int:
 STOP_SECONDS = 10.0
 
 
-def _stop_within(viewer, seconds: float, warn) -> None:
+def stop_within(viewer, seconds: float, warn) -> None:
     """Stop the viewer's server, waiting for it at most ``seconds``: a server thread that does not end (seen once in
     CI: the command still running 60 s after its SIGINT) must not keep the command alive. Past the bound, one line
     says so and the process exits at once."""

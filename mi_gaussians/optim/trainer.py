@@ -37,7 +37,7 @@ import numpy as np
 
 from ..config import TrainConfig
 from ..data.dataset import Dataset
-from ..drjit_utils import owned_tensor
+from ..drjit_utils import exact_float_math, owned_tensor
 from ..evaluate import PROTOCOLS, depth_error, evaluate_views, scores_report, summarize
 from ..model.gaussians import Gaussians
 from ..raster.projection import ViewParams
@@ -374,32 +374,37 @@ class Trainer:
         step = self.step + 1
         self._t0 = time.perf_counter()
         try:
-            if self._refine_at is not None:      # (a traced iteration before it: nothing is queued)
-                with self.loop.timed("refinement"):
-                    self._refine()
-                self.loop.refinements += 1
-            if self._traced_at(step):
-                if not self._resolve():
-                    return
-                with self.loop.timed("traced"):
-                    loss, instances = self._iteration(step)
-                self.loop.traced += 1
-                self.step = step
-                self._commit(step, loss)
-                if self.cfg.freeze:
-                    self._set_capacity_after_traced(instances)
-            else:
-                recordings = self.train_step.recordings
-                with self.loop.timed("frozen") as part:
-                    self._dispatch(step)
-                    new = self.train_step.recordings - recordings
-                    part[0] = "recording" if new else "frozen"
-                self.loop.recordings += new
-                if self._host_work_at(step) or len(self._pending) >= SYNC_EVERY:
-                    self._resolve()
+            with exact_float_math():             # (the frozen and traced iterations trace the same arithmetic)
+                self._advance(step)
         finally:
             self.elapsed += time.perf_counter() - self._t0
             self._t0 = time.perf_counter()
+
+    def _advance(self, step: int) -> None:
+        """The body of :meth:`advance` (iteration ``step``)."""
+        if self._refine_at is not None:      # (a traced iteration before it: nothing is queued)
+            with self.loop.timed("refinement"):
+                self._refine()
+            self.loop.refinements += 1
+        if self._traced_at(step):
+            if not self._resolve():
+                return
+            with self.loop.timed("traced"):
+                loss, instances = self._iteration(step)
+            self.loop.traced += 1
+            self.step = step
+            self._commit(step, loss)
+            if self.cfg.freeze:
+                self._set_capacity_after_traced(instances)
+        else:
+            recordings = self.train_step.recordings
+            with self.loop.timed("frozen") as part:
+                self._dispatch(step)
+                new = self.train_step.recordings - recordings
+                part[0] = "recording" if new else "frozen"
+            self.loop.recordings += new
+            if self._host_work_at(step) or len(self._pending) >= SYNC_EVERY:
+                self._resolve()
 
     # ------------------------------------------------------------------ evaluation
     def _test_psnr(self) -> float | None:
