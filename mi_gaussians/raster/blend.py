@@ -64,10 +64,10 @@ class LaneLayout:
         return self.lanes_per_tile.bit_length() - 1
 
 
-# Per backend, measured (benchmarks/render.py, 2-core AVX-512 VM; fwd+bwd ms at 100k Gaussians / 800x800):
-# LLVM 4 pixels / whole tile 428 ms, 8 / 16 lanes 317, 16 / 16 339; trained models of mi_objects and mi_room at
-# their 200-256 px: the blend kernels 1.2-1.4x faster with 8 than with 4. CUDA keeps the layout measured on the H100
-# (a warp of 32 lanes: 4 pixels, the tile's 64 lanes starting together).
+# Per backend, measured (benchmarks/layouts.py, the README's "Lane layout" table; 2-core AVX-512 VM): on the CPU the
+# blend loops are 1.23-1.57x faster with 8 pixels / 16 lanes than with 4 / the tile on trained and synthetic models;
+# 16 pixels wins on synthetic scenes and loses on mi_room (register spills). CUDA keeps the layout measured on the
+# H100 (a warp of 32 lanes: 4 pixels, the tile's 64 lanes starting together).
 LANE_LAYOUTS = {"llvm": LaneLayout(pixels=8, start_lanes=16), "cuda": LaneLayout(pixels=4, start_lanes=64)}
 
 
@@ -156,7 +156,8 @@ def _lane_pixels(frame: Frame, n_lanes: int):
 
 
 def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cfg: RasterConfig):
-    """Returns ([r, g, b, depth-sum, T] images (H*W each), lane-order T (lanes*4), lane-order last index (lanes*4),
+    """Returns ([r, g, b, depth-sum, T] images (H*W each), lane-order T (lanes * pixels per lane), lane-order last
+    index (the same),
     number of (pixel x Gaussian) evaluations (lazy UInt32))."""
     P = frame.layout.pixels
     n_lanes = bins.n_tiles * frame.layout.lanes_per_tile
