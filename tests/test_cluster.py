@@ -577,7 +577,7 @@ def test_what_the_cluster_pushes_to_the_driver_is_one_line_on_stderr(capfd):
 
 
 def test_a_cluster_with_token_authentication_is_named_in_the_error(monkeypatch):
-    """`ray start` turns token authentication on (Ray >= 2.52); a driver without RAY_AUTH_MODE=token is refused after
+    """`ray start` turns token authentication on (Ray 2.60 does); a driver without RAY_AUTH_MODE=token is refused after
     Ray's retries: the one line says what to set."""
     import ray
 

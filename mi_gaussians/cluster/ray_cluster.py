@@ -103,7 +103,7 @@ def connected(address: str | None = None, num_cpus: int | None = None, connect_s
         where = f"--address {address}: cannot join the Ray cluster there" if address else "cannot start Ray"
         hint = ""
         if address and os.environ.get("RAY_AUTH_MODE", "") != "token":
-            hint = ("; a cluster started with token authentication (Ray's default for `ray start` since 2.52) "
+            hint = ("; a cluster started with token authentication (`ray start`'s default in recent Ray versions) "
                     "needs RAY_AUTH_MODE=token here, and its token (~/.ray/auth_token or RAY_AUTH_TOKEN)")
         raise ValueError(f"{where} ({' '.join(str(e).split())[:200]}){hint}") from None
     try:
