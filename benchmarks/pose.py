@@ -52,6 +52,11 @@ def main(argv=None) -> int:
     ap.add_argument("--iterations", type=int, default=7000)
     ap.add_argument("--out", type=Path, default=Path("/tmp/mi_gs_pose"))
     args = ap.parse_args(argv)
+    for lr in args.lr or []:
+        try:
+            [float(x) for x in lr.split(":", 1)]
+        except ValueError:
+            ap.error(f"--lr {lr}: expected LR or LR:DECAY (numbers)")
     rows = []
     for name in args.datasets:
         folder, extra = DATASETS[name]

@@ -138,8 +138,9 @@ class OptimConfig:
                                              # (optim/pose.py, gsplat's pose_opt)
     pose_opt_lr: float = 1e-4                # its Adam's rate at the start: 10x gsplat's 1e-5, since ours is sparse
                                              # (a camera steps only where it is rendered); measured, README
-    pose_opt_lr_decay: float = 1.0           # ... decaying exponentially to this fraction of it over
-                                             # position_lr_max_steps (1: constant, as gsplat's)
+    pose_opt_lr_decay: float = 1.0           # ... moving exponentially to this factor times it over
+                                             # position_lr_max_steps (1: constant, as gsplat's; < 1 decays, > 1
+                                             # grows)
     pose_opt_reg: float = 1e-6               # its L2 weight decay (gsplat's pose_opt_reg)
 
     def with_depth_weight(self, weight: float) -> "OptimConfig":

@@ -572,6 +572,10 @@ def test_what_the_cluster_pushes_to_the_driver_is_one_line_on_stderr(capfd):
                                        "is_err": False}, ignore_prefix=False)
     out, err = capfd.readouterr()
     assert out == "" and err.splitlines() == [f"ray: {NODE_DIED}", "ray: Something else."]
+    with cluster_messages_to_stderr(ray, quiet_seconds=0.0):        # (a second death, later: said again)
+        for _ in range(2):
+            ray_worker.print_to_stdstream(message, ignore_prefix=False)
+    assert capfd.readouterr().err.splitlines() == [f"ray: {NODE_DIED}"] * 2
     ray_worker.print_to_stdstream(message, ignore_prefix=False)      # (afterwards: Ray's own printer again)
     assert "[state-dump]" in capfd.readouterr().out
 

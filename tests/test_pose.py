@@ -263,6 +263,9 @@ def test_frozen_and_traced_training_agree(scene, tmp_path, one_thread):  # noqa:
     assert_same_training(frozen, traced)
     np.testing.assert_array_equal(frozen.poses.deltas(), traced.poses.deltas())
     assert np.abs(frozen.poses.deltas()).max() > 1e-5                  # (they did move)
+    constant = _noisy_trainer(scene, _pose_cfg(small_config(120), pose_opt_lr=3e-4), tmp_path / "constant")
+    constant.run()                                                      # (the decaying rate reached the steps)
+    assert np.abs(constant.poses.deltas() - frozen.poses.deltas()).max() > 1e-6
 
 
 def test_checkpoint_and_resume_keep_the_corrections(scene, tmp_path, one_thread):  # noqa: F811

@@ -297,12 +297,13 @@ from mi_gaussians.raster import blend as blend_module  # noqa: E402
 from mi_gaussians.raster.blend import LANE_LAYOUTS, LaneLayout  # noqa: E402
 
 LAYOUTS = {**LANE_LAYOUTS, "one_pixel": LaneLayout(pixels=1, start_lanes=256),
-           "column": LaneLayout(pixels=16, start_lanes=1)}
+           "two_pixels": LaneLayout(pixels=2, start_lanes=8), "column": LaneLayout(pixels=16, start_lanes=1)}
 
 
 @pytest.fixture(params=sorted(LAYOUTS))
 def each_layout(request, monkeypatch):
     monkeypatch.setattr(blend_module, "lane_layout", lambda: LAYOUTS[request.param])
+    assert blend_module.make_frame(16, 16, 1).layout is LAYOUTS[request.param]     # (what render's frames get)
     return request.param
 
 
@@ -330,11 +331,12 @@ def test_lane_layouts_agree_with_each_other():
         with pytest.MonkeyPatch.context() as mp:
             mp.setattr(blend_module, "lane_layout", lambda layout=layout: layout)
             grads, out = gradients_numpy(params, cam, weights, background=BACKGROUND)
-            results[name] = (np.array(out.rgb), np.array(out.alpha), grads)
-    base_rgb, base_alpha, base_grads = results["llvm"]
-    for name, (rgb, alpha, grads) in results.items():
+            results[name] = (np.array(out.rgb), np.array(out.alpha), np.array(out.depth), grads)
+    base_rgb, base_alpha, base_depth, base_grads = results["llvm"]
+    for name, (rgb, alpha, depth, grads) in results.items():
         np.testing.assert_array_equal(rgb, base_rgb, err_msg=name)
         np.testing.assert_array_equal(alpha, base_alpha, err_msg=name)
+        np.testing.assert_array_equal(depth, base_depth, err_msg=name)
         for k in NAMES:
             scale = max(np.abs(base_grads[k]).max(), 1e-6)
             np.testing.assert_allclose(grads[k], base_grads[k], rtol=0, atol=1e-5 * scale, err_msg=f"{name} {k}")

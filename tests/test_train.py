@@ -100,8 +100,11 @@ def test_checkpoint_round_trip_is_exact(scene, tmp_path):
     assert la.pop("outside")["saving"] > lb.pop("outside")["saving"]     # (the checkpoint's own writing)
     assert la == lb and la["traced"] > 1
     # the next iteration continues identically: same view, same scheduled position rate, same update
-    a._iteration(231)
-    b._iteration(231)
+    from mi_gaussians.drjit_utils import exact_float_math
+
+    with exact_float_math():                    # (as Trainer.advance traces them)
+        a._iteration(231)
+        b._iteration(231)
     o = cfg.optim
     lr = a.extent * expon_lr(231, o.position_lr_init, o.position_lr_final, o.position_lr_max_steps)
     assert a.params.learning_rate("means") == b.params.learning_rate("means") == pytest.approx(lr)
@@ -220,7 +223,9 @@ def test_no_recompilation_when_the_training_view_changes(scene, tmp_path, strate
                               densify=dataclasses.replace(cfg.densify, densify_from_iter=10_000),
                               mcmc=dataclasses.replace(cfg.mcmc, refine_start_iter=10_000))
     tr = Trainer(load(scene, cfg), cfg, tmp_path / "run", progress=False)
-    with KernelLog() as log:
+    from mi_gaussians.drjit_utils import exact_float_math
+
+    with KernelLog() as log, exact_float_math():            # (the iterations as Trainer.advance traces them)
         for step in range(1, 4):
             tr._iteration(step)
         log.cut()

@@ -102,15 +102,15 @@ def connected(address: str | None = None, num_cpus: int | None = None, connect_s
     except (ConnectionError, RuntimeError, ValueError) as e:
         where = f"--address {address}: cannot join the Ray cluster there" if address else "cannot start Ray"
         hint = ""
-        if address and os.environ.get("RAY_AUTH_MODE", "") != "token":
-            hint = ("; a cluster started with token authentication (`ray start`'s default in recent Ray versions) "
-                    "needs RAY_AUTH_MODE=token here, and its token (~/.ray/auth_token or RAY_AUTH_TOKEN)")
+        if address and isinstance(e, ConnectionError) and os.environ.get("RAY_AUTH_MODE", "") != "token":
+            hint = ("; if the cluster uses token authentication (`ray start`'s default in recent Ray versions), set "
+                    "RAY_AUTH_MODE=token here and give its token (~/.ray/auth_token or RAY_AUTH_TOKEN)")
         raise ValueError(f"{where} ({' '.join(str(e).split())[:200]}){hint}") from None
-    try:
-        with cluster_messages_to_stderr(ray):
+    with cluster_messages_to_stderr(ray):
+        try:
             yield ray
-    finally:
-        ray.shutdown()
+        finally:
+            ray.shutdown()                          # (its messages while it stops: still ours)
 
 
 _ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
@@ -142,25 +142,29 @@ def cluster_message_line(lines) -> str:
 
 
 @contextlib.contextmanager
-def cluster_messages_to_stderr(ray):
+def cluster_messages_to_stderr(ray, quiet_seconds: float = 120.0):
     """While the block runs, the messages Ray's driver prints for the cluster (a thread of ``ray.init`` writes them
     to stdout with colour codes, a raylet's death with 20 lines of its state dumps; ``log_to_driver`` does not turn
     it off) go to stderr as one line each, once: ``ray: <what it said>`` (for a dead node, the runs' rows then say
-    what it meant for them). Other output of Ray's printer is left as it is. Ray without that printer
+    what it meant for them; a second death after ``quiet_seconds`` is said again). A multi-line report (an OOM kill's)
+    keeps its first line. Other output of Ray's printer is left as it is. Ray without that printer
     (``ray._private.worker.print_to_stdstream``, Ray 2.x): nothing changes."""
     worker = getattr(getattr(ray, "_private", None), "worker", None)
     original = getattr(worker, "print_to_stdstream", None)
     if original is None:
         yield
         return
-    said = set()
+    said: dict[str, float] = {}        # line -> when it was last said (Ray's messages of one death come ~15 s apart)
 
     def printer(data, *args, **kwargs):
+        import time
+
         if not (isinstance(data, dict) and data.get("pid") == "raylet"):
             return original(data, *args, **kwargs)
         line = cluster_message_line(data.get("lines") or [])
-        if line and line not in said:
-            said.add(line)
+        now = time.monotonic()
+        if line and now - said.get(line, -float("inf")) > quiet_seconds:
+            said[line] = now
             from tqdm import tqdm
 
             tqdm.write(f"ray: {line}", file=sys.stderr)     # (on a line of its own, under a progress bar too)

@@ -13,10 +13,11 @@ Gaussians that receive gradients.
 Layout for speed on SIMD CPUs (and coherent on GPUs): one lane handles a column of ``LaneLayout.pixels`` pixels of a
 16 x 16 tile (8 on the LLVM backend, 4 on CUDA: ``LANE_LAYOUTS``), so the lanes of a tile are contiguous and a SIMD
 packet of lanes reads the same instance in lock-step; per-Gaussian features are packed (8 + 4 floats) and read with
-packet gathers; the backward loop of every group of ``LaneLayout.start_lanes`` lanes (a SIMD packet's worth on the
-CPU, the whole tile on CUDA) starts at the group's largest last-contributor index, so a packet's lanes touch the same
+packet gathers; the backward loop of every group of ``LaneLayout.start_lanes`` lanes (16 on the CPU: an AVX-512
+packet, two AVX2 ones; the whole tile on CUDA) starts at the group's largest last-contributor index, so a packet's lanes touch the same
 Gaussian together, and gradients are accumulated with packet ``scatter_add`` in Dr.Jit's ``Expand`` mode (no atomics
-on CPU). The layout changes only the speed: images are identical, gradients equal up to the order of float sums.
+on CPU). The layout changes only the speed: images are identical (for finite inputs), gradients equal up to the order
+of float sums.
 """
 
 from __future__ import annotations
@@ -64,8 +65,9 @@ class LaneLayout:
         return self.lanes_per_tile.bit_length() - 1
 
 
-# Per backend, measured (benchmarks/layouts.py, the README's "Lane layout" table; 2-core AVX-512 VM): on the CPU the
-# blend loops are 1.23-1.57x faster with 8 pixels / 16 lanes than with 4 / the tile on trained and synthetic models;
+# Per backend, measured (benchmarks/layouts.py, the README's "Lane layout" table; a 2-core AVX-512 VM, 16-lane
+# packets; AVX2's 8-lane packets with half the registers are not measured): on the CPU the blend loops' fwd+bwd
+# medians are 1.05-1.57x faster with 8 pixels / 16 lanes than with 4 / the tile on trained and synthetic models;
 # 16 pixels wins on synthetic scenes and loses on mi_room (register spills). CUDA keeps the layout measured on the
 # H100 (a warp of 32 lanes: 4 pixels, the tile's 64 lanes starting together).
 LANE_LAYOUTS = {"llvm": LaneLayout(pixels=8, start_lanes=16), "cuda": LaneLayout(pixels=4, start_lanes=64)}
@@ -175,7 +177,7 @@ def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cf
         f = dr.gather(_array_types()[0], geo, g, shape=(GEO, n_lanes))
         mx, my, qa, qb, qc, op, z = f[0], f[1], f[2], f[3], f[4], f[5], f[6]
         dx = mx - px
-        ax2 = qa * dx * dx            # shared by the lane's 4 pixels (same column)
+        ax2 = qa * dx * dx            # shared by the lane's pixels (same column)
         bx = qb * dx
         act, T, C, D, last = list(act), list(T), list(C), list(D), list(last)
         hit, ws, Ts = [], [], []
