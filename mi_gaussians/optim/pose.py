@@ -16,9 +16,9 @@ independent reference renderer).
 :class:`PoseDeltas` owns them as :class:`~.exposure.Exposure` owns the colour transforms: its own ``mi.ad.Adam``
 (PyTorch's eps 1e-8; gsplat's L2 weight decay 1e-6, ``optim.pose_opt_reg``), sparse (a step moves only the rendered
 camera's ``p_i``, its L2 term included: each step sees one view), at the rate ``optim.pose_opt_lr`` (constant unless
-``optim.pose_opt_lr_decay`` is set: then decaying exponentially to that fraction of it, an input of the frozen step
-like the positions' rate). gsplat's
-dense Adam at 1e-5 keeps moving every camera between its visits with the momentum of its last gradient; a sparse step
+``optim.pose_opt_lr_decay`` is set: then moving exponentially to that factor times it, an input of the frozen step
+like the positions' rate). gsplat's dense Adam at 1e-5 keeps moving every camera between its visits with the
+momentum of its last gradient; a sparse step
 moves a camera only on its own visits, about one step in N for N training images, so our default is ten times
 gsplat's rate (measured on mi_objects/colmap -r 2 with every camera turned by 1 degree and moved by 1 % of the scene:
 1e-5, 1e-4, 3e-4 and 1e-3 left 0.86, 0.39, 0.32 and 0.30 degrees and scored 23.96, 28.13, 27.19 and 24.44 dB
