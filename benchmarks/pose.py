@@ -73,14 +73,16 @@ def main(argv=None) -> int:
             print(json.dumps({"dataset": name, "setup": setup, "psnr": m["mean"]["psnr"],
                               "poses": m.get("poses")}), file=sys.stderr, flush=True)
     print(f"\n{args.iterations} iterations; errors of the training cameras against the dataset's, start -> end\n")
-    print("| dataset | setup | PSNR | SSIM | rotation error (deg) | translation error (of the extent) | Gaussians | "
-          "minutes |")
-    print("|---|---|---:|---:|---|---|---:|---:|")
+    print("| dataset | setup | PSNR | SSIM | rotation error (deg) | translation error (of the extent) | "
+          "reprojection error (px) | Gaussians | minutes |")
+    print("|---|---|---:|---:|---|---|---|---:|---:|")
     for name, setup, m in rows:
         p = m.get("poses")
         rot = "-" if p is None else "{start:.3f} -> {end:.3f}".format(**p["rotation_error_degrees"])
         tr = "-" if p is None else "{start:.4f} -> {end:.4f}".format(**p["translation_error_of_extent"])
-        print(f"| {name} | {setup} | {m['mean']['psnr']:.2f} | {m['mean']['ssim']:.4f} | {rot} | {tr} | "
+        px = "-" if p is None or "reprojection_error_pixels" not in p else \
+            "{start:.2f} -> {end:.2f}".format(**p["reprojection_error_pixels"])
+        print(f"| {name} | {setup} | {m['mean']['psnr']:.2f} | {m['mean']['ssim']:.4f} | {rot} | {tr} | {px} | "
               f"{m['gaussians']:,} | {m['training_seconds'] / 60:.1f} |")
     return 0
 

@@ -29,7 +29,7 @@ from test_train_step import assert_same_training, one_thread, stopped_and_resume
 
 from mi_gaussians.config import OptimConfig, TrainConfig
 from mi_gaussians.data.colmap import matrix_to_quaternion, quaternion_to_matrix
-from mi_gaussians.data.pose_noise import perturbed_cameras, pose_errors
+from mi_gaussians.data.pose_noise import perturbed_cameras, pose_errors, reprojection_error
 from mi_gaussians.optim.pose import PoseDeltas, adjusted_view
 from mi_gaussians.raster.projection import ViewParams
 
@@ -207,6 +207,42 @@ def test_perturbation_has_exactly_the_asked_sizes_and_is_seeded():
     assert pose_errors(perturbed_cameras(cams, 0.01, 0.0, seed=3), cams)[0] == pytest.approx(0.01, rel=1e-6)
 
 
+def _turned(cam, axis_row: int, angle: float, move=(0.0, 0.0, 0.0)):
+    """``cam`` turned by ``angle`` radians about its own axis ``axis_row`` (0 x, 1 y) through its centre, and its
+    centre moved by ``move`` (world units)."""
+    c, s = math.cos(angle), math.sin(angle)
+    turn = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]) if axis_row == 1 else \
+        np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    R = turn @ cam.world_to_camera[:3, :3]
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = R, -R @ (cam.center + np.asarray(move))
+    return dataclasses.replace(cam, world_to_camera=m)
+
+
+def test_reprojection_error_is_the_image_shift_and_sees_a_turn_traded_for_a_move():
+    """Points on the optical axis at depth 3 (the camera's width 64, focal f): a turn by a about the camera's y axis
+    moves them by f tan(a) pixels, a sideways move by d by f d / 3; a move of d and the turn atan(d / 3) that
+    compensates it leave the image of those points where it was (0 px) while the angle and the centre are off."""
+    cam = sf.look_at([3.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    axis = np.zeros((1, 3))                                          # the target, at depth 3
+    f, a, d = cam.fx, math.radians(0.5), 0.02
+    assert reprojection_error([cam], [cam], axis) == 0.0
+    assert reprojection_error([_turned(cam, 1, a)], [cam], axis) == pytest.approx(f * math.tan(a), rel=1e-9)
+    right = cam.world_to_camera[0, :3]                               # the camera's x axis in the world
+    assert reprojection_error([_turned(cam, 1, 0.0, d * right)], [cam], axis) == pytest.approx(f * d / 3.0, rel=1e-9)
+    traded = _turned(cam, 1, math.atan2(d, 3.0), d * right)
+    assert reprojection_error([traded], [cam], axis) < 1e-9
+    rot, dist = pose_errors([traded], [cam])
+    assert rot == pytest.approx(math.degrees(math.atan2(d, 3.0)), rel=1e-9) and dist == pytest.approx(d)
+    # the mean over cameras of the mean over the points each sees; points behind or outside the true image left out
+    other = sf.look_at([0.0, 3.0, 0.0], [0.0, 0.0, 0.0])
+    behind, outside = [6.0, 0.0, 0.0], [0.0, 0.0, 100.0]
+    pts = np.array([[0.0, 0.0, 0.0], behind, outside])
+    e = reprojection_error([_turned(cam, 1, a), other], [cam, other], pts)
+    assert e == pytest.approx(f * math.tan(a) / 2.0, rel=1e-9)
+    assert reprojection_error([cam], [cam], np.zeros((0, 3))) is None and reprojection_error([cam], [cam], None) is None
+
+
 def test_pose_settings_are_checked():
     cfg = TrainConfig().with_settings(["data.pose_noise=1,0.01", "optim.pose_opt=true"])
     assert cfg.data.pose_noise == (1.0, 0.01) and cfg.optim.pose_opt
@@ -306,6 +342,8 @@ def test_a_known_rotation_error_is_undone(scene, tmp_path):  # noqa: F811
     assert m0["poses"]["rotation_error_degrees"] == {"start": 1.0, "end": 1.0} and not m0["poses"]["optimized"]
     assert m1["poses"]["rotation_error_degrees"]["start"] == 1.0
     assert m1["poses"]["rotation_error_degrees"]["end"] < 0.8
+    px0, px1 = m1["poses"]["reprojection_error_pixels"]["start"], m1["poses"]["reprojection_error_pixels"]["end"]
+    assert m0["poses"]["reprojection_error_pixels"]["end"] == px0 > 0 and px1 < 0.8 * px0, (px0, px1)
     assert m1["mean"]["psnr"] > m0["mean"]["psnr"] + 1.5, (m0["mean"]["psnr"], m1["mean"]["psnr"])
 
 
@@ -328,6 +366,7 @@ def test_command_line(tmp_path):
     poses = json.loads((out / "metrics.json").read_text())["poses"]
     assert poses["optimized"] and poses["rotation_error_degrees"]["start"] == pytest.approx(0.5, abs=1e-6)
     assert poses["translation_error_of_extent"]["start"] == pytest.approx(0.01, rel=1e-3)
+    assert printed["pose_reprojection_error_pixels"]["start"] == poses["reprojection_error_pixels"]["start"] > 0
     created = json.loads((out / ".mi-gs-manifest.json").read_text())["created"]
     assert "cameras_refined.json" in created and "images_refined.txt" in created
     refined = json.loads((out / "cameras_refined.json").read_text())["train"]

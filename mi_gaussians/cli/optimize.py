@@ -66,6 +66,9 @@ def run(args) -> int:
     if "poses" in metrics:          # (--pose-opt, data.pose_noise: the training cameras' errors, start and end)
         summary["pose_rotation_error_degrees"] = metrics["poses"]["rotation_error_degrees"]
         summary["pose_translation_error_of_extent"] = metrics["poses"]["translation_error_of_extent"]
+        if "reprojection_error_pixels" in metrics["poses"]:
+            summary["pose_reprojection_error_pixels"] = {k: metrics["poses"]["reprojection_error_pixels"][k]
+                                                         for k in ("start", "end")}
     print(json.dumps(summary, indent=2), flush=True)
     if result.watcher is not None and result.watcher.viewer is not None:
         _serve_until_stopped(result.watcher)

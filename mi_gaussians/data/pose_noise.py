@@ -5,7 +5,11 @@ the distance between two sets of poses.
 its centre and moves its centre by exactly ``FRAC`` times the scene extent in a uniformly random direction, seeded, so
 that a run and its evaluation draw the same errors. (gsplat draws its perturbation's 9 numbers from one normal
 distribution; fixed sizes make "the error before" a setting rather than a sample.) :func:`pose_errors` gives the mean
-rotation error (degrees, the angle of ``R_a R_b^T``) and the mean distance between the centres.
+rotation error (degrees, the angle of ``R_a R_b^T``) and the mean distance between the centres;
+:func:`reprojection_error` what the image sees of the difference: how far the scene's points land from where the true
+camera puts them, in pixels. The two tell different things: a small sideways move of a camera and a small turn shift
+the image of a distant object alike, so a correction can trade one for the other (angles and centres off, the image
+right) where the scene's depth range is small against its distance.
 """
 
 from __future__ import annotations
@@ -70,3 +74,22 @@ def pose_errors(cameras: list[Camera], truth: list[Camera]) -> tuple[float, floa
         angles.append(math.degrees(math.atan2(sine, (np.trace(rel) - 1.0) / 2.0)))
         distances.append(float(np.linalg.norm(a.center - b.center)))
     return float(np.mean(angles)) if angles else 0.0, float(np.mean(distances)) if distances else 0.0
+
+
+def reprojection_error(cameras: list[Camera], truth: list[Camera], points: np.ndarray,
+                       max_points: int = 20_000) -> float | None:
+    """The mean over cameras of the mean distance in pixels between where ``cameras[i]`` and ``truth[i]`` project
+    ``points`` (N, 3), over the points in front of both that the true camera sees inside its image; None without
+    points or where no camera sees any. Of more than ``max_points`` points, an evenly strided subset."""
+    if points is None or len(points) == 0:
+        return None
+    points = np.asarray(points, np.float64)[::max(1, -(-len(points) // max_points))]
+    means = []
+    for a, b in zip(cameras, truth):
+        uv_a, z_a = a.project(points)
+        uv_b, z_b = b.project(points)
+        seen = (z_a > 0) & (z_b > 0) & (uv_b[:, 0] >= 0) & (uv_b[:, 0] <= b.width) & (uv_b[:, 1] >= 0) & \
+            (uv_b[:, 1] <= b.height)
+        if seen.any():
+            means.append(float(np.mean(np.linalg.norm(uv_a[seen] - uv_b[seen], axis=1))))
+    return float(np.mean(means)) if means else None

@@ -468,7 +468,7 @@ class Trainer:
         """The training cameras' mean errors against the given ones (``given_cameras``), as the run started and as it
         ends (refined: ``--pose-opt``), and the refined cameras written beside the model."""
         from ..data.pointcloud import camera_extent
-        from ..data.pose_noise import pose_errors
+        from ..data.pose_noise import pose_errors, reprojection_error
 
         extent = camera_extent(np.stack([c.center for c in self.given_cameras]))[1]    # (the given cameras' extent)
         start = [v.camera for v in self.ds.train]
@@ -476,10 +476,16 @@ class Trainer:
         if self.poses is not None:
             save_refined_cameras(self.out, end)
         (r0, d0), (r1, d1) = pose_errors(start, self.given_cameras), pose_errors(end, self.given_cameras)
-        return {"against": "the training cameras as the dataset gives them", "optimized": self.poses is not None,
-                "rotation_error_degrees": {"start": round(r0, 6), "end": round(r1, 6)},
-                "translation_error": {"start": round(d0, 8), "end": round(d1, 8)},
-                "translation_error_of_extent": {"start": round(d0 / extent, 8), "end": round(d1 / extent, 8)}}
+        out = {"against": "the training cameras as the dataset gives them", "optimized": self.poses is not None,
+               "rotation_error_degrees": {"start": round(r0, 6), "end": round(r1, 6)},
+               "translation_error": {"start": round(d0, 8), "end": round(d1, 8)},
+               "translation_error_of_extent": {"start": round(d0 / extent, 8), "end": round(d1 / extent, 8)}}
+        points = self.ds.points_xyz      # (the run's initial points, in the given cameras' frame: the scene's points)
+        p0, p1 = (reprojection_error(c, self.given_cameras, points) for c in (start, end))
+        if p0 is not None and p1 is not None:
+            out["reprojection_error_pixels"] = {"start": round(p0, 6), "end": round(p1, 6),
+                                                "of": f"the run's {len(points):,} initial points"}
+        return out
 
     def _drain(self) -> None:
         """Commit every queued iteration (training time; an overflow rewinds and empties the queue)."""
