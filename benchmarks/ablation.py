@@ -29,6 +29,7 @@ DATA = (ROOT / ".." / "shared" / "data").resolve()
 # strategy table, so that a rule can be tried on all four within a working day of the 2-core VM
 DATASETS = {
     "mi_objects_colmap": ("mi_objects/colmap", ["--white-background"]),
+    "mi_objects_colmap_r2": ("mi_objects/colmap", ["-r", "2", "--white-background"]),   # 100x100: 30k runs affordable
     "mi_room_colmap": ("mi_room/colmap", []),
     "fox": ("fox", ["-r", "8"]),
     "fox_r4": ("fox", ["-r", "4"]),

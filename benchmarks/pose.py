@@ -21,9 +21,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from ablation import DATA, DATASETS as ABLATION_DATASETS  # noqa: E402
 from cli_run import train  # noqa: E402
 
-DATASETS = {**ABLATION_DATASETS,
-            "mi_objects_colmap_r2": ("mi_objects/colmap", ["-r", "2", "--white-background"]),
-            "mi_room_colmap_r2": ("mi_room/colmap", ["-r", "2"])}
+DATASETS = {**ABLATION_DATASETS, "mi_room_colmap_r2": ("mi_room/colmap", ["-r", "2"])}
 
 
 def setups(noise: tuple[float, float], lrs: list[str | None]) -> dict[str, list[str]]:
