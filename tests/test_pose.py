@@ -240,6 +240,12 @@ def test_reprojection_error_is_the_image_shift_and_sees_a_turn_traded_for_a_move
     pts = np.array([[0.0, 0.0, 0.0], behind, outside])
     e = reprojection_error([_turned(cam, 1, a), other], [cam, other], pts)
     assert e == pytest.approx(f * math.tan(a) / 2.0, rel=1e-9)
+    # more points than max_points: every k-th (here depths 3, 2, 4, 2.5 on the axis, seen by a sideways move)
+    deep = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.5, 0.0, 0.0]])
+    moved = _turned(cam, 1, 0.0, d * right)
+    assert reprojection_error([moved], [cam], deep, max_points=2) == pytest.approx(f * d * (1 / 3 + 1 / 4) / 2, rel=1e-9)
+    assert reprojection_error([moved], [cam], deep) == pytest.approx(f * d * (1 / 3 + 1 / 2 + 1 / 4 + 1 / 2.5) / 4,
+                                                                     rel=1e-9)
     assert reprojection_error([cam], [cam], np.zeros((0, 3))) is None and reprojection_error([cam], [cam], None) is None
 
 
