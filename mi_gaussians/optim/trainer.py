@@ -59,10 +59,6 @@ CHECKPOINT = Path(run_folder.CHECKPOINT)
 # keeps the device busier; fewer wastes fewer iterations when one overflows its instance capacity and is replayed.
 SYNC_EVERY = 25
 
-# The pose report's reprojection error projects at most this many of the initial points (an evenly strided subset):
-# enough for a mean, a fraction of a second for a hundred cameras.
-REPROJECTED_POINTS = 20_000
-
 
 class TrainingDiverged(RuntimeError):
     """The loss or a parameter became NaN/Inf."""
@@ -472,7 +468,7 @@ class Trainer:
         """The training cameras' mean errors against the given ones (``given_cameras``), as the run started and as it
         ends (refined: ``--pose-opt``), and the refined cameras written beside the model."""
         from ..data.pointcloud import camera_extent
-        from ..data.pose_noise import pose_errors, reprojection_error
+        from ..data.pose_noise import pose_errors, reprojection_error, reprojection_points
 
         extent = camera_extent(np.stack([c.center for c in self.given_cameras]))[1]    # (the given cameras' extent)
         start = [v.camera for v in self.ds.train]
@@ -485,9 +481,10 @@ class Trainer:
                "translation_error": {"start": round(d0, 8), "end": round(d1, 8)},
                "translation_error_of_extent": {"start": round(d0 / extent, 8), "end": round(d1 / extent, 8)}}
         points = self.ds.points_xyz      # (the run's initial points, in the given cameras' frame: the scene's points)
-        p0, p1 = (reprojection_error(c, self.given_cameras, points, REPROJECTED_POINTS) for c in (start, end))
+        used = reprojection_points(points)       # (taken once, for both ends)
+        p0, p1 = (reprojection_error(c, self.given_cameras, used) for c in (start, end))
         if p0 is not None and p1 is not None:
-            subset = "" if len(points) <= REPROJECTED_POINTS else f" (an evenly strided {REPROJECTED_POINTS:,})"
+            subset = "" if len(used) == len(points) else f" (an evenly strided {len(used):,} of them)"
             out["reprojection_error_pixels"] = {"start": round(p0, 6), "end": round(p1, 6),
                                                 "of": f"the run's {len(points):,} initial points{subset}"}
         return out
