@@ -3,6 +3,7 @@
 
     python benchmarks/pose.py mi_objects_colmap_r2 --noise 1 0.01            # exact, noisy, noisy + --pose-opt
     python benchmarks/pose.py mi_objects_colmap_r2 --noise 1 0.01 --lr 1e-5 1e-4 3e-4 1e-3:0.01   # LR[:DECAY]
+    python benchmarks/pose.py mi_objects_colmap_r2 --noise 1 0 --pivot centre depth  # where the turn pivots
     python benchmarks/pose.py fox --noise 0 0                                 # a real capture: with and without
 
 Runs are kept in --out (default /tmp/mi_gs_pose/<dataset>/<setup>) and reused; an interrupted one resumes. The
@@ -24,19 +25,24 @@ from cli_run import train  # noqa: E402
 DATASETS = {**ABLATION_DATASETS, "mi_room_colmap_r2": ("mi_room/colmap", ["-r", "2"])}
 
 
-def setups(noise: tuple[float, float], lrs: list[str | None]) -> dict[str, list[str]]:
+def setups(noise: tuple[float, float], lrs: list[str | None], pivots: list[str] | None = None) -> dict[str, list[str]]:
     """setup name -> options: the exact cameras (when there is noise), the noisy ones, and --pose-opt at each rate
-    (``LR`` or ``LR:DECAY``, optim.pose_opt_lr and optim.pose_opt_lr_decay; None: the default)."""
+    (``LR`` or ``LR:DECAY``, optim.pose_opt_lr and optim.pose_opt_lr_decay; None: the default) and each pivot
+    (optim.pose_opt_pivot; None: the default; a setup's name says "_pivot_depth" where the pivot is "depth")."""
     deg, frac = noise
     noisy = ["--set", f"data.pose_noise={deg:g},{frac:g}"] if deg or frac else []
     out = {"exact": []} if noisy else {}
     out[f"noise_{deg:g}_{frac:g}" if noisy else "given"] = noisy
     for lr in lrs:
-        name = ("noise" if noisy else "given") + f"{'_' + format(deg, 'g') + '_' + format(frac, 'g') if noisy else ''}"
-        rate, _, decay = (lr or "").partition(":")
-        name += "_pose_opt" + (f"_lr{float(rate):g}" if rate else "") + (f"_decay{float(decay):g}" if decay else "")
-        out[name] = noisy + ["--pose-opt"] + (["--set", f"optim.pose_opt_lr={float(rate):g}"] if rate else []) + \
-            (["--set", f"optim.pose_opt_lr_decay={float(decay):g}"] if decay else [])
+        for pivot in pivots or [None]:
+            name = ("noise" if noisy else "given") + \
+                f"{'_' + format(deg, 'g') + '_' + format(frac, 'g') if noisy else ''}"
+            rate, _, decay = (lr or "").partition(":")
+            name += "_pose_opt" + (f"_lr{float(rate):g}" if rate else "") + \
+                (f"_decay{float(decay):g}" if decay else "") + ("_pivot_depth" if pivot == "depth" else "")
+            out[name] = noisy + ["--pose-opt"] + (["--set", f"optim.pose_opt_lr={float(rate):g}"] if rate else []) + \
+                (["--set", f"optim.pose_opt_lr_decay={float(decay):g}"] if decay else []) + \
+                (["--set", f"optim.pose_opt_pivot={pivot}"] if pivot else [])
     return out
 
 
@@ -46,6 +52,8 @@ def main(argv=None) -> int:
     ap.add_argument("--noise", type=float, nargs=2, default=(1.0, 0.01), metavar=("DEGREES", "FRACTION"))
     ap.add_argument("--lr", nargs="*", default=None, metavar="LR[:DECAY]",
                     help="pose learning rates, each with its decay factor (default: the default)")
+    ap.add_argument("--pivot", nargs="*", default=None, choices=["centre", "depth"],
+                    help="where the corrections turn the cameras (optim.pose_opt_pivot; default: the default)")
     ap.add_argument("--only", nargs="*", default=None, help="run only these setups")
     ap.add_argument("--iterations", type=int, default=7000)
     ap.add_argument("--out", type=Path, default=Path("/tmp/mi_gs_pose"))
@@ -62,7 +70,7 @@ def main(argv=None) -> int:
         if not src.is_dir():
             print(f"{name}: {src} not found, skipped", file=sys.stderr)
             continue
-        for setup, options in setups(tuple(args.noise), args.lr or [None]).items():
+        for setup, options in setups(tuple(args.noise), args.lr or [None], args.pivot).items():
             if args.only and setup not in args.only:
                 continue
             out = args.out / name / f"{setup}_{args.iterations}"

@@ -34,6 +34,7 @@ SCENE_INITS = ("shapes", "random", "sfm")
 EXPOSURES = ("off", "affine", "bilateral")
 #: ``OptimConfig.ssim_padding``: 'same', the reference's SSIM (zero padding, the mean over every pixel); 'valid',
 #: gsplat's trainer (``fused_ssim(padding="valid")``: the mean over the pixels whose window lies inside the image).
+POSE_PIVOTS = ("centre", "depth")                # optim.pose_opt_pivot (optim/pose.py)
 SSIM_PADDINGS = ("same", "valid")
 #: ``--depth-weight W`` decays from W to W / DEPTH_WEIGHT_DECAY (the 2024 reference's 1.0 to 0.01).
 DEPTH_WEIGHT_DECAY = 100.0
@@ -142,6 +143,9 @@ class OptimConfig:
                                              # position_lr_max_steps (1: constant, as gsplat's; < 1 decays, > 1
                                              # grows)
     pose_opt_reg: float = 1e-6               # its L2 weight decay (gsplat's pose_opt_reg)
+    pose_opt_pivot: str = "centre"           # where a correction's rotation turns a camera: "centre" (its own centre,
+                                             # gsplat's) or "depth" (a point ahead at the depth of the scene points it
+                                             # sees, pose.pivot_depths: rotation and translation then separate)
 
     def with_depth_weight(self, weight: float) -> "OptimConfig":
         """Depth supervision of weight ``weight`` decaying to ``weight / DEPTH_WEIGHT_DECAY`` (``--depth-weight``)."""
@@ -362,7 +366,7 @@ RULES: dict[str, "Range | tuple[str, ...]"] = {
     "data.background": Range(0), "data.pose_noise": Range(0, counts=(2, 2)),
     "optim.iterations": _COUNT, "optim.position_lr_max_steps": _COUNT, "optim.sh_degree": Range(0, 3),
     "optim.sh_increase_interval": _COUNT, "optim.lambda_dssim": _FRACTION, "optim.adam_eps": _POSITIVE,
-    "optim.pose_opt_lr_decay": _POSITIVE,
+    "optim.pose_opt_lr_decay": _POSITIVE, "optim.pose_opt_pivot": POSE_PIVOTS,
     "optim.exposure": EXPOSURES, "optim.ssim_padding": SSIM_PADDINGS, "optim.exposure_grid": Range(2, counts=(3, 3)),
     "densify.densification_interval": _COUNT, "densify.split_count": _COUNT,
     "densify.split_scale_divisor": _POSITIVE, "densify.min_opacity": Range(0, 1, open_high=True),

@@ -37,8 +37,9 @@ BACKGROUND = (0.3, 0.5, 0.7)
 EXTENT = 2.5
 
 
-def _moved_camera(cam, p, extent=EXTENT):
-    """The test's own transcription: camera-to-world times [[rot6d(p[3:] + identity), p[:3] * extent], [0, 1]]."""
+def _moved_camera(cam, p, extent=EXTENT, pivot=0.0):
+    """The test's own transcription: camera-to-world times [[rot6d(p[3:] + identity), p[:3] * extent], [0, 1]], that
+    correction conjugated by the move to the pivot (0, 0, pivot) in camera axes (a turn about it, not the centre)."""
     a1 = np.array(p[3:6]) + [1.0, 0.0, 0.0]
     a2 = np.array(p[6:9]) + [0.0, 1.0, 0.0]
     b1 = a1 / np.linalg.norm(a1)
@@ -47,7 +48,9 @@ def _moved_camera(cam, p, extent=EXTENT):
     fix = np.eye(4)
     fix[:3, :3] = np.stack([b1, b2, np.cross(b1, b2)])      # rows b1, b2, b3 (pytorch3d's rotation_6d_to_matrix)
     fix[:3, 3] = np.array(p[:3]) * extent
-    w2c = np.linalg.inv(np.linalg.inv(cam.world_to_camera) @ fix)
+    to_pivot = np.eye(4)
+    to_pivot[2, 3] = pivot
+    w2c = np.linalg.inv(np.linalg.inv(cam.world_to_camera) @ to_pivot @ fix @ np.linalg.inv(to_pivot))
     return SimpleNamespace(width=cam.width, height=cam.height, fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy,
                            world_to_camera=w2c)
 
@@ -59,36 +62,37 @@ def _set(deltas: PoseDeltas, value) -> None:
     deltas.restore(saved)
 
 
-def _our_gradient(params, cam, p0, weights):
+def _our_gradient(params, cam, p0, weights, pivot=0.0):
     g = mig.Gaussians.from_numpy(**params)
     p = mi.Float(np.asarray(p0, np.float32))
     dr.enable_grad(p)
     items = [dr.gather(mi.Float, p, k) for k in range(9)]
-    view = adjusted_view(ViewParams.from_camera(cam), items, EXTENT)
+    view = adjusted_view(ViewParams.from_camera(cam), items, EXTENT, mi.Float(pivot))
     out = mig.render(g, view, background=BACKGROUND)
     dr.backward(weighted_loss(out, weights))
     return np.array(dr.grad(p), np.float64)
 
 
-def _fd_gradient(params, cam, p0, weights, eps):
+def _fd_gradient(params, cam, p0, weights, eps, pivot=0.0):
     cams = []
     for k in range(9):
         for sign in (1.0, -1.0):
             p = np.array(p0, np.float64)
             p[k] += sign * eps
-            cams.append(_moved_camera(cam, p))
+            cams.append(_moved_camera(cam, p, pivot=pivot))
     losses = [render_losses([params], c, weights, background=BACKGROUND)[0][0] for c in cams]
     return np.array([(losses[2 * k] - losses[2 * k + 1]) / (2 * eps) for k in range(9)])
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_view_correction_gradient_matches_finite_differences(seed):
+@pytest.mark.parametrize("seed,pivot", [(0, 0.0), (1, 0.0), (2, 3.0)])
+def test_view_correction_gradient_matches_finite_differences(seed, pivot):
+    """(pivot 3: turning about a point ahead of the camera, optim.pose_opt_pivot = "depth")"""
     params, cam = sf.random_scene(seed=30 + seed, n=12, sh_degree=2, width=24, height=20)
     weights = random_weights(cam, seed=seed)
     rng = np.random.default_rng(seed)
     p0 = rng.normal(scale=0.01, size=9)                     # away from the identity: every term of the formula counts
-    ours = _our_gradient(params, cam, p0, weights)
-    fd = _fd_gradient(params, cam, p0, weights, eps=1e-5)
+    ours = _our_gradient(params, cam, p0, weights, pivot)
+    fd = _fd_gradient(params, cam, p0, weights, eps=1e-5, pivot=pivot)
     scale = np.abs(fd).max()
     assert scale > 1e-2
     np.testing.assert_allclose(ours, fd, rtol=0, atol=2e-3 * scale)
@@ -107,18 +111,62 @@ def test_zero_correction_is_the_view_itself():
     np.testing.assert_allclose(moved, plain, atol=1e-6)
 
 
-def test_correction_moves_the_camera_as_the_numpy_transcription():
+@pytest.mark.parametrize("pivot", [0.0, 3.0])
+def test_correction_moves_the_camera_as_the_numpy_transcription(pivot):
     _, cam = sf.random_scene(seed=4, n=2, width=16, height=16)
     p = np.array([0.01, -0.02, 0.005, 0.03, -0.01, 0.02, 0.01, 0.02, -0.04])
-    deltas = PoseDeltas(1, OptimConfig(), EXTENT)
+    deltas = PoseDeltas(1, OptimConfig(), EXTENT, np.array([pivot]))
     _set(deltas, p[None])
     moved = deltas.cameras([cam])[0]
-    np.testing.assert_allclose(moved.world_to_camera, _moved_camera(cam, p.astype(np.float32)).world_to_camera,
-                               atol=1e-6)
+    np.testing.assert_allclose(moved.world_to_camera,
+                               _moved_camera(cam, p.astype(np.float32), pivot=pivot).world_to_camera, atol=1e-6)
     view = deltas.view(ViewParams.from_camera(cam), 0)
     np.testing.assert_allclose(np.array(view.R, np.float64).reshape(3, 3), moved.world_to_camera[:3, :3], atol=1e-6)
     np.testing.assert_allclose(np.array(view.t, np.float64).ravel(), moved.world_to_camera[:3, 3], atol=1e-5)
     np.testing.assert_allclose(np.array(view.center, np.float64).ravel(), moved.center, atol=1e-5)
+
+
+def test_a_turn_about_the_pivot_keeps_the_pivot_where_it_was():
+    """A pure rotation about the pivot (0, 0, z): the point there stays at the same place in the image and at depth z,
+    the centre moves on the sphere of radius z about it; about the centre (pivot 0) the centre stays and the point
+    moves by f tan(a)."""
+    cam = sf.look_at([3.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    a = math.radians(0.5)
+    p = np.zeros(9)
+    p[3:6] = [math.cos(a), 0.0, -math.sin(a)]     # the 6D form's first row: a turn by a about the camera's y axis
+    p[3:6] -= [1.0, 0.0, 0.0]
+    target = np.zeros((1, 3))
+    about_pivot = PoseDeltas(1, OptimConfig(), EXTENT, np.array([3.0]))
+    _set(about_pivot, p[None])
+    moved = about_pivot.cameras([cam])[0]
+    uv0, z0 = cam.project(target)
+    uv1, z1 = moved.project(target)
+    np.testing.assert_allclose(uv1, uv0, atol=1e-5)
+    np.testing.assert_allclose(z1, z0, atol=1e-6)
+    assert np.linalg.norm(moved.center - target[0]) == pytest.approx(3.0, abs=1e-6)
+    assert np.linalg.norm(moved.center - cam.center) == pytest.approx(2 * 3.0 * math.sin(a / 2), rel=1e-4)
+    assert pose_errors([moved], [cam])[0] == pytest.approx(0.5, rel=1e-4)
+    about_centre = PoseDeltas(1, OptimConfig(), EXTENT)
+    _set(about_centre, p[None])
+    turned = about_centre.cameras([cam])[0]
+    np.testing.assert_allclose(turned.center, cam.center, atol=1e-6)
+    assert np.linalg.norm(turned.project(target)[0] - uv0) == pytest.approx(cam.fx * math.tan(a), rel=1e-4)
+
+
+def test_pivot_depths():
+    """sum(1/z) / sum(1/z^2) of the points a camera sees; the scene centre's depth without any; 0 when that is behind."""
+    from mi_gaussians.optim.pose import pivot_depths
+
+    cam = sf.look_at([3.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    on_axis = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [-30.0, 0.0, 0.0], [0.0, 0.0, 50.0], [6.0, 0.0, 0.0]])
+    # on the axis at depths 3, 2 and 33: seen; 50 above the target: outside the image; at depth -3: behind
+    z = np.array([3.0, 2.0, 33.0])
+    assert pivot_depths([cam], on_axis)[0] == pytest.approx(np.sum(1 / z) / np.sum(1 / z ** 2), rel=1e-12)
+    assert pivot_depths([cam], np.array([[0.0, 0.0, 0.0]] * 3))[0] == pytest.approx(3.0, rel=1e-12)
+    away = sf.look_at([3.0, 0.0, 0.0], [6.0, 0.0, 0.0])              # looking away from the points and the centre
+    np.testing.assert_allclose(pivot_depths([cam, away], None, np.zeros(3)), [3.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(pivot_depths([away], on_axis[:2], np.zeros(3)), [0.0], atol=1e-12)
+    assert pivot_depths([cam], None)[0] == 0.0
 
 
 def test_sparse_step_moves_only_the_rendered_camera_and_decays_it():
@@ -173,6 +221,15 @@ def test_export_restore_round_trip_and_wrong_shape():
     np.testing.assert_array_equal(b.deltas(), a.deltas())
     with pytest.raises(ValueError, match="4 training cameras"):
         _set(PoseDeltas(4, OptimConfig(), EXTENT), np.zeros((3, 9)))
+    # the pivots travel with the corrections (they give them their meaning); a checkpoint from before pivots: centres
+    c = PoseDeltas(4, OptimConfig(), EXTENT, np.array([1.0, 2.0, 3.0, 4.0]))
+    b.restore(c.export())
+    np.testing.assert_array_equal(b.pivots, [1.0, 2.0, 3.0, 4.0])
+    old = {k: v for k, v in c.export().items() if k != "pivot"}
+    c.restore(old)
+    np.testing.assert_array_equal(c.pivots, 0.0)
+    with pytest.raises(ValueError, match="pivots"):
+        PoseDeltas(2, OptimConfig(), EXTENT, np.array([1.0, -1.0]))
 
 
 def test_quaternion_round_trip_every_branch():
@@ -260,6 +317,8 @@ def test_pose_settings_are_checked():
         TrainConfig().with_settings(["optim.pose_opt_lr=-1e-5"])
     with pytest.raises(ValueError, match="optim.pose_opt_lr_decay"):
         TrainConfig().with_settings(["optim.pose_opt_lr_decay=0"])
+    with pytest.raises(ValueError, match="optim.pose_opt_pivot"):
+        TrainConfig().with_settings(["optim.pose_opt_pivot=middle"])
 
 
 # ------------------------------------------------------------------------------------------------ training runs
@@ -294,11 +353,12 @@ def test_a_zero_rate_trains_bit_for_bit_as_without(scene, tmp_path, one_thread):
 
 
 def test_frozen_and_traced_training_agree(scene, tmp_path, one_thread):  # noqa: F811
-    """With --pose-opt the frozen step (the view index and the decaying rate inputs, the correction gathered inside)
-    trains exactly what the traced loop trains, corrections included."""
-    cfg = _pose_cfg(small_config(120), pose_opt_lr=3e-4, pose_opt_lr_decay=0.03)
+    """With --pose-opt the frozen step (the view index and the decaying rate inputs, the correction and its pivot
+    gathered inside) trains exactly what the traced loop trains, corrections included."""
+    cfg = _pose_cfg(small_config(120), pose_opt_lr=3e-4, pose_opt_lr_decay=0.03, pose_opt_pivot="depth")
     frozen = _noisy_trainer(scene, cfg, tmp_path / "frozen")
     frozen.run()
+    assert np.all(frozen.poses.pivots > 0)                 # (the scene's points' depths: inputs of the frozen step)
     traced = _noisy_trainer(scene, dataclasses.replace(cfg, freeze=False), tmp_path / "traced")
     traced.run()
     assert frozen.train_step.recordings > 0

@@ -46,7 +46,7 @@ from .. import report, run_folder
 from . import checkpoint
 from .adam import GaussianAdam
 from .compensation import make_compensation, save_compensation
-from .pose import PoseDeltas, save_refined_cameras
+from .pose import PoseDeltas, pivot_depths, save_refined_cameras
 from .loop_state import History, LoopStats, ViewSampler
 from .strategies import initial_gaussians, make_strategy
 from .losses import inverse_depth_target
@@ -131,7 +131,13 @@ class Trainer:
                                    cfg.optim, self.extent)
         self.strategy_state = self.strategy.initialize_state(self.params.n)
         self.exposure = make_compensation(cfg.optim, len(ds.train))
-        self.poses = PoseDeltas(len(ds.train), cfg.optim, self.extent) if cfg.optim.pose_opt else None
+        self.poses = None
+        if cfg.optim.pose_opt:
+            pivots = None
+            if cfg.optim.pose_opt_pivot == "depth":    # (the scene's points as the run starts: its initial points)
+                from ..data.pose_noise import reprojection_points
+                pivots = pivot_depths([v.camera for v in ds.train], reprojection_points(ds.points_xyz), ds.center)
+            self.poses = PoseDeltas(len(ds.train), cfg.optim, self.extent, pivots)
         # the frozen training step (see train_step.py) and the state of the loop around it
         self.train_step = TrainStep(self.strategy, cfg.raster, cfg.optim.lambda_dssim, self.background,
                                     freeze=cfg.freeze, ssim_padding=cfg.optim.ssim_padding)
