@@ -32,9 +32,10 @@ SCENE_INITS = ("shapes", "random", "sfm")
 #: ``OptimConfig.exposure``: per-image colour compensation ('affine': the 2024 reference's --train_test_exp;
 #: 'bilateral': gsplat's bilateral grids).
 EXPOSURES = ("off", "affine", "bilateral")
+#: ``OptimConfig.pose_opt_pivot``: where a pose correction turns its camera (optim/pose.py).
+POSE_PIVOTS = ("centre", "depth")
 #: ``OptimConfig.ssim_padding``: 'same', the reference's SSIM (zero padding, the mean over every pixel); 'valid',
 #: gsplat's trainer (``fused_ssim(padding="valid")``: the mean over the pixels whose window lies inside the image).
-POSE_PIVOTS = ("centre", "depth")                # optim.pose_opt_pivot (optim/pose.py)
 SSIM_PADDINGS = ("same", "valid")
 #: ``--depth-weight W`` decays from W to W / DEPTH_WEIGHT_DECAY (the 2024 reference's 1.0 to 0.01).
 DEPTH_WEIGHT_DECAY = 100.0
