@@ -1,7 +1,5 @@
 """``python -m mi_gaussians.cli``: the same as ``mi-gs``."""
 
-import sys
+from . import entry_point
 
-from . import main
-
-sys.exit(main())
+entry_point()
