@@ -128,6 +128,11 @@ class Camera:
             uv = np.stack([self.fx * pc[:, 0] / z + self.cx, self.fy * pc[:, 1] / z + self.cy], axis=1)
         return uv, z
 
+    def sees(self, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Of points projected by :meth:`project`, those in front of the camera and inside its image (edges
+        included): (N,) bool."""
+        return (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= self.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= self.height)
+
     def scaled(self, width: int, height: int) -> "Camera":
         """The same camera for an image resampled to ``width x height`` (intrinsics scaled per axis)."""
         sx, sy = width / self.width, height / self.height

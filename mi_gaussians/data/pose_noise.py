@@ -100,8 +100,7 @@ def reprojection_error(cameras: list[Camera], truth: list[Camera], points: np.nd
     for a, b in zip(cameras, truth):
         uv_a, z_a = a.project(points)
         uv_b, z_b = b.project(points)
-        seen = (z_a > 0) & (z_b > 0) & (uv_b[:, 0] >= 0) & (uv_b[:, 0] <= b.width) & (uv_b[:, 1] >= 0) & \
-            (uv_b[:, 1] <= b.height)
+        seen = (z_a > 0) & b.sees(uv_b, z_b)
         if seen.any():
             means.append(float(np.mean(np.linalg.norm(uv_a[seen] - uv_b[seen], axis=1))))
     return float(np.mean(means)) if means else None

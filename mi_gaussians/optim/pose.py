@@ -107,7 +107,7 @@ def pivot_depths(cameras: list[Camera], points: np.ndarray | None, centre: np.nd
     for i, cam in enumerate(cameras):
         if pts is not None:
             uv, z = cam.project(pts)
-            seen = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height)
+            seen = cam.sees(uv, z)
             if seen.any():
                 inv = 1.0 / z[seen]
                 out[i] = float(np.sum(inv) / np.sum(inv * inv))
