@@ -357,8 +357,12 @@ def _free_port() -> int:
 
 def test_11_serving_beyond_this_machine_warns(trained):
     port = _free_port()
+    # (SIGINT as a terminal's Ctrl-C finds it: a suite started in the background by a non-interactive shell, `pytest
+    # &`, has SIGINT ignored, children inherit that, and a Python started so installs no KeyboardInterrupt: the
+    # viewer then outlived its SIGINT by the whole timeout, the "CI" failures of this test)
     proc = subprocess.Popen([EXE, "view", str(trained), "--host", "0.0.0.0", "--port", str(port)],
-                            cwd=tempfile.gettempdir(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            cwd=tempfile.gettempdir(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 120
         line = ""
@@ -371,26 +375,6 @@ def test_11_serving_beyond_this_machine_warns(trained):
         if proc.poll() is None:
             proc.kill()
     assert "warning: --host 0.0.0.0" in err and "without authentication" in err, err
-
-
-@pytest.mark.parametrize("target,status", [("scenes/tiny_gaussians.ply", 0), ("missing.ply", 2)])
-def test_11_a_finished_command_exits_though_a_thread_is_left_running(target, status):
-    """A thread that never ends (as a library's server thread can be, test_11 above) keeps no finished command alive:
-    past mi_gaussians.cli.EXIT_SECONDS one line says so and the process exits with the command's own status; a
-    process with nothing left running exits at once, without the line."""
-    root = Path(__file__).resolve().parents[1]
-    code = ("import sys, threading, time; import mi_gaussians.cli as cli; cli.EXIT_SECONDS = 1.5; "
-            "threading.Thread(target=time.sleep, args=(600,), daemon=sys.argv[2] == 'daemon').start(); "
-            "sys.argv = ['mi-gs', 'info', sys.argv[1]]; cli.entry_point()")
-    for kind in ("left behind", "daemon"):
-        start = time.monotonic()
-        r = subprocess.run([sys.executable, "-c", code, target, kind], cwd=root, capture_output=True, text=True,
-                           timeout=120)
-        assert r.returncode == status, r.stderr
-        bounded = "had not exited 1.5 s after the command finished" in r.stderr
-        assert bounded == (kind == "left behind"), r.stderr
-        assert time.monotonic() - start < 60
-    assert json.loads(r.stdout)["gaussians"] == 2000 if status == 0 else "missing.ply" in r.stderr
 
 
 def test_12_16_bit_pngs_are_read_at_full_precision(tmp_path):

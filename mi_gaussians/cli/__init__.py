@@ -67,43 +67,6 @@ def main(argv=None) -> int:
         return EXIT_INTERRUPTED
 
 
-#: Once a command has finished, the longest the process waits for the interpreter's own exit (threads a library left
-#: running, exit handlers) before it exits without them (seconds)
-EXIT_SECONDS = 20.0
-
-
-def entry_point() -> None:
-    """The ``mi-gs`` executable (and ``python -m mi_gaussians.cli``): :func:`main`, then the process's exit, bounded
-    by :data:`EXIT_SECONDS`. Everything a command writes is written (atomically) before :func:`main` returns, so
-    what the interpreter does afterwards (joining threads, exit handlers) is housekeeping, and a thread that does not
-    end must not keep a finished command alive (seen in CI: ``mi-gs view`` still running a minute after its Ctrl-C,
-    its server stopped). Past the bound, one line says so and the process exits with the command's status."""
-    try:
-        status = main()
-    except SystemExit as e:                      # (argparse's -h and its errors)
-        status = e.code
-    _exit_within(status, EXIT_SECONDS)
-    sys.exit(status)
-
-
-def _exit_within(status, seconds: float) -> None:
-    """A daemon thread that ends the process with ``status`` if it is still alive ``seconds`` from now (a daemon: the
-    process's own exit, when it comes first, takes it along)."""
-    import os
-    import threading
-    import time
-
-    code = status if isinstance(status, int) else 0 if status is None else 1
-
-    def watchdog():
-        time.sleep(seconds)
-        os.write(2, (f"mi-gs: warning: the process had not exited {seconds:g} s after the command finished (a thread "
-                     "or exit handler still running); exiting without waiting for it\n").encode())
-        os._exit(code)
-
-    threading.Thread(target=watchdog, name="mi-gs exit bound", daemon=True).start()
-
-
 def _error(message: str) -> int:
     print(f"mi-gs: error: {message}", file=sys.stderr)
     return EXIT_INPUT_ERROR

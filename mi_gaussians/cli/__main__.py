@@ -1,5 +1,7 @@
 """``python -m mi_gaussians.cli``: the same as ``mi-gs``."""
 
-from . import entry_point
+import sys
 
-entry_point()
+from . import main
+
+sys.exit(main())
