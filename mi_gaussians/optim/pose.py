@@ -113,8 +113,7 @@ def pivot_depths(cameras: list[Camera], points: np.ndarray | None, centre: np.nd
                 out[i] = float(np.sum(inv) / np.sum(inv * inv))
                 continue
         if centre is not None:
-            out[i] = max(0.0, float((cam.world_to_camera[:3, :3] @ np.asarray(centre, np.float64)
-                                     + cam.world_to_camera[:3, 3])[2]))
+            out[i] = max(0.0, float(cam.project(centre)[1][0]))
     return out
 
 
@@ -144,7 +143,7 @@ class PoseDeltas:
         pivots = np.asarray(pivots, np.float64).reshape(-1)
         if pivots.shape != (self.n,) or not np.all(np.isfinite(pivots)) or np.any(pivots < 0):
             raise ValueError(f"pose pivots: {self.n} finite depths >= 0 expected, got {pivots.shape} {pivots[:4]}")
-        self.pivots = pivots
+        self.pivots = pivots.astype(np.float32).astype(np.float64)   # (as the frozen step's float32 copy holds them)
         self._pivots = owned_array(mi.Float, pivots.astype(np.float32))
 
     def deltas(self) -> np.ndarray:
@@ -188,8 +187,7 @@ class PoseDeltas:
     def cameras(self, cameras: list[Camera]) -> list[Camera]:
         """``cameras`` (the training cameras, in order) through their corrections (float64)."""
         deltas = self.deltas()
-        return [dataclasses.replace(c, world_to_camera=adjusted_world_to_camera(c.world_to_camera, d, self.extent,
-                                                                                 float(np.float32(z))))
+        return [dataclasses.replace(c, world_to_camera=adjusted_world_to_camera(c.world_to_camera, d, self.extent, z))
                 for c, d, z in zip(cameras, deltas, self.pivots)]
 
     # ------------------------------------------------------------------ checkpoints
