@@ -50,7 +50,9 @@ if [ "$part" = quality ]; then
         python3 benchmarks/collect_runs.py "$R/ablation" --curve 2000 4000 6000 "$short" \
             --json "$OUT/ours.json" > "$OUT/ours.md" 2>> "$OUT/collect.log"
         cat "$R"/gsplat_*.md > "$OUT/gsplat.md" 2>/dev/null
-        tar -C "$R" -czf "$OUT/logs.tar.gz" logs $(cd "$R" && ls gsplat_*.json 2>/dev/null)
+        # (with each of our runs' metrics.json and history.json: the time split of issue 36, recordings, overflows)
+        tar -C "$R" -czf "$OUT/logs.tar.gz" logs $(cd "$R" && ls gsplat_*.json 2>/dev/null) \
+            $(cd "$R" && find ablation \( -name metrics.json -o -name history.json -o -name config.json \) 2>/dev/null)
         echo "== ours"; cat "$OUT/ours.md"; echo "== gsplat"; grep -hE '^\| gsplat|rror' "$R"/gsplat_*.md
     }
     running() { pgrep -f "$R/" > /dev/null; }
