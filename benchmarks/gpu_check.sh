@@ -6,6 +6,8 @@
 #   bash benchmarks/gpu_check.sh peers   # the rasterizer against gsplat, gsplat's simple_trainer recipe to 7k
 #   bash benchmarks/gpu_check.sh quality setup|start|finish   # ours against gsplat's recipe, 7k of 30k, on the four
 #                                        # shared datasets, quality and minutes (two calls: see "quality" below)
+#   bash benchmarks/gpu_check.sh layouts # the blend's lane layouts on a trained model, then the rasterizer against
+#                                        # gsplat (after "quality setup": see "layouts" below)
 # Run from the project's root on the GPU machine. Here, first:
 #   bash ../shared/tools/gpu/prepare.sh --gsplat        # .gpu/: Mitsuba/Dr.Jit runtime (+ gsplat's wheel)
 #   mkdir -p .gpu/data/mi_objects && cp -r ../shared/data/mi_objects/colmap .gpu/data/mi_objects/
@@ -16,7 +18,7 @@
 # own time limit, so that a slow step cannot eat the others' results; logs and tables go to $OUT (default
 # /tmp/gpu_check) and the tables are repeated at the end.
 set -u
-part=${1:?usage: gpu_check.sh tests|peers}
+part=${1:?usage: gpu_check.sh tests|peers|quality|layouts}
 OUT=${OUT:-/tmp/gpu_check}
 mkdir -p "$OUT"
 T0=$(date +%s)
@@ -96,6 +98,27 @@ if [ "$part" = quality ]; then
     esac
     say "collecting"
     collect
+    exit 0
+fi
+
+if [ "$part" = layouts ]; then
+    # The blend kernels' lane layouts on the GPU (issue 36: is a 200x200 run's step slow for want of threads?), on a
+    # trained model and two synthetic scenes, then the rasterizer against gsplat. Two calls, back to back:
+    #   call 1 (carry .gpu/site.tar.xz .gpu/pycolmap.tar.xz .gpu/bootstrap.sh):   gpu_check.sh quality setup
+    #   call 2 (carry .gpu/run .gpu/gsplat-1.5.3-py3-none-any.whl .gpu/bootstrap.sh):   gpu_check.sh layouts
+    # Here, first: a trained run's point_cloud.ply, cameras.json and config.json copied into .gpu/run (a 7k
+    # mi_objects/colmap model: ~24 MB).
+    (MAX_JOBS=14 timeout 300 python3 -c "from gsplat.cuda._backend import _C" > "$OUT/gsplat_build.log" 2>&1 &)
+    say "lane layouts"
+    timeout "${LAYOUTS_S:-150}" python3 benchmarks/layouts.py .gpu/run 100000:800 1000000:1600 --variant "${VARIANT:-cuda_ad_rgb}" \
+        --layouts 4:64 2:128 1:256 4:32 2:64 --repeats 5 > "$OUT/layouts.md" 2>&1
+    say "waiting for gsplat's build"
+    for i in $(seq 120); do pgrep -f "gsplat.cuda._backend" > /dev/null || break; sleep 2; done
+    say "rasterizer against gsplat"
+    timeout "${RENDER_S:-120}" python3 benchmarks/render.py --variant cuda_ad_rgb --peers gsplat --repeats 7 --profile \
+        --cases 10000:256 100000:800 1000000:1600 > "$OUT/render.md" 2>&1
+    say done
+    for f in layouts render; do echo "== $f"; grep -E '^\| [0-9a-zA-Z]|rror' "$OUT/$f.md" | tail -n 20; done
     exit 0
 fi
 

@@ -4,14 +4,18 @@ percent between processes and minutes; taking turns gives every layout the same 
 
     python benchmarks/layouts.py 100000:800 10000:256                   # synthetic scenes (benchmarks/render.py's)
     python benchmarks/layouts.py RUN@DATASET                            # a trained run's model on 4 training views
+    python benchmarks/layouts.py RUN                                    # the same from the run folder alone
+    python benchmarks/layouts.py RUN 100000:800 1000000:1600 --variant cuda_ad_rgb --layouts 4:64 2:128 1:256
 
 ``RUN`` is a run folder (its ``point_cloud.ply``), ``DATASET`` the dataset folder it was trained on (read at full
-resolution, white background).
+resolution, white background). A run folder alone takes 4 of the training cameras its ``cameras.json`` lists and the
+background its ``config.json`` records (what a GPU machine needs to be sent: the folder's two files and the model).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import sys
 from pathlib import Path
@@ -34,6 +38,13 @@ def cases(specs):
             views = ds.train[::max(1, len(ds.train) // 4)][:4]
             yield f"{Path(run).name} ({g.n:,} Gaussians, {views[0].camera.width}x{views[0].camera.height})", g, \
                 [v.camera for v in views], (1.0, 1.0, 1.0)
+        elif ":" not in spec:
+            run = Path(spec)
+            g = mig.Gaussians.load_ply(run / "point_cloud.ply")
+            train = json.loads((run / "cameras.json").read_text())["train"]
+            cams = [mig.Camera.from_dict(c, str(run / "cameras.json")) for c in train[::max(1, len(train) // 4)][:4]]
+            bg = tuple(json.loads((run / "config.json").read_text())["train"]["data"]["background"])
+            yield f"{run.name} ({g.n:,} Gaussians, {cams[0].width}x{cams[0].height})", g, cams, bg
         else:
             n, res = map(int, spec.split(":"))
             cam = mig.Camera(res, res, res / 1.2, res / 1.2, res / 2, res / 2, np.eye(4))
@@ -69,7 +80,7 @@ def blend_ms(g, cams, background) -> tuple[float, float]:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("cases", nargs="+", metavar="N:RES | RUN@DATASET")
+    ap.add_argument("cases", nargs="+", metavar="N:RES | RUN@DATASET | RUN")
     ap.add_argument("--repeats", type=int, default=5, help="timed turns per layout (after one untimed turn)")
     ap.add_argument("--variant", default="llvm_ad_rgb")
     ap.add_argument("--layouts", nargs="+", default=["4:64", "8:16", "16:16"], metavar="PIXELS:START_LANES")
