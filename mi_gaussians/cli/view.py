@@ -84,9 +84,11 @@ STOP_SECONDS = 10.0
 
 
 def stop_within(viewer, seconds: float, warn) -> None:
-    """Stop the viewer's server, waiting for it at most ``seconds``: a server thread that does not end (seen once in
-    CI: the command still running 60 s after its SIGINT) must not keep the command alive. Past the bound, one line
-    says so and the process exits at once."""
+    """Stop the viewer's server, waiting for it at most ``seconds`` (every wait is bounded): a server thread that
+    does not end must not keep the command alive. Past the bound, one line says so and the process exits at once.
+    (The viewer that once outlived a test's SIGINT in CI by 60 s was not this: the suite had been started with
+    SIGINT ignored, which its children inherit; ``tests/test_reliability_round2.py`` now gives the viewer a terminal's
+    SIGINT.)"""
     import os
     import sys
     import threading
