@@ -75,10 +75,15 @@ if [ "$part" = quality ]; then
         lane="MAX_JOBS=14 python3 -c 'from gsplat.cuda._backend import _C' > $R/logs/gsplat_build.log 2>&1;"
         # (mi_room first: where ours is furthest behind; mi_objects, measured most, last; then ours with gsplat
         # 1.5.3's no-reset rule on mi_room, if the call lasts)
+        # (Q_SETUPS: our ablation setups per dataset, default "defaults"; e.g. "defaults no_reset" to rank the opacity
+        # reset on all four, about 12 runs: a finish call's worth more)
         for pair in mi_room_colmap:mi_room_colmap fox_r4:fox maryrose_r8:maryrose mi_objects_colmap:mi_objects_colmap; do
             ours=${pair%%:*}; peer=${pair##*:}
-            lane="$lane $A $ours --only defaults --iterations $short --schedule 30000 --out $R/ablation \
-                > $R/logs/ours_$ours.log 2>&1; $G $peer --milestones $short --schedule 30000 \
+            for setup in ${Q_SETUPS:-defaults}; do
+                lane="$lane $A $ours --only $setup --iterations $short --schedule 30000 --out $R/ablation \
+                    > $R/logs/ours_${ours}_$setup.log 2>&1;"
+            done
+            lane="$lane $G $peer --milestones $short --schedule 30000 \
                 --out $R/gsplat_${peer}.json > $R/gsplat_${peer}.md 2>&1;"
         done
         lane="$lane $A mi_room_colmap --only no_reset --iterations $short --schedule 30000 --out $R/ablation \
