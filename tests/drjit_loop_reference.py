@@ -20,12 +20,16 @@ from mi_gaussians.raster.projection import GaussianArrays, ViewParams, project
 NAMES = ("means", "scales", "rotations", "opacities", "sh_dc", "sh_rest")
 
 
-def loop_ad_render(params: dict, cam, weights: dict, background=(0.0, 0.0, 0.0)):
+def loop_ad_render(params: dict, cam, weights: dict, background=(0.0, 0.0, 0.0), view: ViewParams | None = None):
+    """The weighted loss's gradients with respect to the Gaussians (and, through ``view``, a camera's own Dr.Jit
+    parameters: pass a view made from values with gradients enabled, and read them after the call; default: the view
+    of ``cam``), and the image."""
     cfg = RasterConfig()
     g = mig.Gaussians.from_numpy(**params)
     for k in NAMES:
         dr.enable_grad(getattr(g, k))
-    proj = project(GaussianArrays.from_gaussians(g, g.sh_degree), ViewParams.from_camera(cam), cfg)
+    proj = project(GaussianArrays.from_gaussians(g, g.sh_degree), ViewParams.from_camera(cam) if view is None else view,
+                   cfg)
     valid = np.array(proj.tile_count) > 0
     depth = np.array(dr.detach(proj.depth))
     order_np = np.array([i for i in np.argsort(depth, kind="stable") if valid[i]], dtype=np.uint32)
