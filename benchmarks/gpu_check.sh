@@ -56,6 +56,7 @@ if [ "$part" = quality ]; then
         tar -C "$R" -czf "$OUT/logs.tar.gz" logs $(cd "$R" && ls gsplat_*.json 2>/dev/null) \
             $(cd "$R" && find ablation \( -name metrics.json -o -name history.json -o -name config.json \) 2>/dev/null)
         echo "== ours"; cat "$OUT/ours.md"; echo "== gsplat"; grep -hE '^\| gsplat|rror' "$R"/gsplat_*.md
+        python3 benchmarks/compare_views.py "$R" > "$OUT/views.md" 2>> "$OUT/collect.log"   # (view by view)
     }
     running() { pgrep -f "$R/" > /dev/null; }
     case "$phase" in
