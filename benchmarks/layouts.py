@@ -28,6 +28,7 @@ NAMES = ("means", "scales", "rotations", "opacities", "sh_dc", "sh_rest")
 def cases(specs):
     import mi_gaussians as mig
     from mi_gaussians.data.dataset import load_dataset
+    from mi_gaussians.run_folder import CAMERAS, MODEL, RunRecord
     from render import make_scene
 
     for spec in specs:
@@ -40,10 +41,10 @@ def cases(specs):
                 [v.camera for v in views], (1.0, 1.0, 1.0)
         elif ":" not in spec:
             run = Path(spec)
-            g = mig.Gaussians.load_ply(run / "point_cloud.ply")
-            train = json.loads((run / "cameras.json").read_text())["train"]
-            cams = [mig.Camera.from_dict(c, str(run / "cameras.json")) for c in train[::max(1, len(train) // 4)][:4]]
-            bg = tuple(json.loads((run / "config.json").read_text())["train"]["data"]["background"])
+            g = mig.Gaussians.load_ply(run / MODEL)
+            train = json.loads((run / CAMERAS).read_text())["train"]
+            cams = [mig.Camera.from_dict(c, str(run / CAMERAS)) for c in train[::max(1, len(train) // 4)][:4]]
+            bg = tuple(RunRecord.read(run, "a run folder holds its config.json").train.data.background)
             yield f"{run.name} ({g.n:,} Gaussians, {cams[0].width}x{cams[0].height})", g, cams, bg
         else:
             n, res = map(int, spec.split(":"))
