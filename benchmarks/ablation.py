@@ -47,6 +47,7 @@ CHANGES = {
     "screen_0.1": ["densify.max_screen_fraction=0.1"],
     "screen_0.15": ["densify.max_screen_fraction=0.15"],
     "no_reset": ["densify.opacity_reset_interval=0"],
+    "reset_once": ["densify.reset_once=true"],
     "ssim_valid": ["optim.ssim_padding=valid"],
     "step_on_refine": ["optim.step_on_refine=true"],
     "near_0.01": ["raster.near_plane=0.01"],

@@ -290,6 +290,50 @@ def test_opacity_reset_values_and_moments():
             np.testing.assert_array_equal(after[key][f], before[key][f])
 
 
+def test_reset_once_lowers_each_gaussian_at_its_first_reset_only():
+    """``reset_once``: the first reset lowers every row (values and moments as the reference's reset); the next one
+    lowers only the rows created since (a clone, even of a reset row, is new) and leaves the others' values and
+    moments bit-identical; the marks follow the rows through clones, splits and prunes and through a checkpoint.
+    Off (the default), the second reset lowers every row again."""
+    def run(once):
+        params, out = crafted()
+        s = DefaultStrategy(DensifyConfig(**RESETS, reset_once=once), EXTENT)
+        state = s.initialize_state(params.n)
+        first = s.step_post_backward(params, state, 3000, out)      # densify (8 rows: see above), then reset all
+        assert first.opacity_reset and first.reset == 8 and params.n == 8
+        assert stats(s, state)["reset_done"].all()
+        # opacities recover; at the next densification the world-huge row goes and a clone of row 0 comes
+        o = np.array(params["opacities"]).copy()
+        o[:] = logit(0.6)
+        params.replace("opacities", mi.TensorXf(mi.Float(o.astype(np.float32)), (params.n,)))
+        grads = np.full(params.n, LOW)
+        grads[0] = HIGH
+        s.step_post_backward(params, state, 3100, fake_out(np.full(params.n, 3), grads))
+        assert params.n == 8 and stats(s, state)["reset_done"].tolist() == [True] * 7 + [False]
+        arrays, meta = s.export_state(state)                         # the marks survive a checkpoint
+        s2 = DefaultStrategy(DensifyConfig(**RESETS, reset_once=once), EXTENT)
+        state2 = s2.import_state(arrays, meta, params.n)
+        np.testing.assert_array_equal(stats(s2, state2)["reset_done"], arrays["reset_done"])
+        moments = params.export_moments()           # (the first reset zeroed them: give the second some to keep)
+        for f, lo in (("m", -1.0), ("v", 0.1)):
+            moments[f"opacities.{f}"] = np.random.default_rng(1).uniform(lo, 1.0, params.n).astype(np.float32)
+        params.import_moments(moments)
+        before = snapshot(params)
+        second = s2.step_post_backward(params, state2, 6000, fake_out(np.full(params.n, 3), np.full(params.n, LOW)))
+        return second, before, snapshot(params), stats(s2, state2)
+
+    second, before, after, st = run(True)
+    assert second.reset == 1 and st["reset_done"].all()
+    p = 1 / (1 + np.exp(-after["opacities"]["value"].astype(np.float64)))
+    np.testing.assert_allclose(p, [0.6] * 7 + [0.01], rtol=1e-5)
+    for f in ("m", "v"):     # the rows it spared keep their moments; the new row's (zero anyway) are zeroed
+        np.testing.assert_array_equal(after["opacities"][f][:7], before["opacities"][f][:7])
+        assert not after["opacities"][f][7:].any()
+    second, _, after, _ = run(False)
+    assert second.reset == 8
+    np.testing.assert_allclose(1 / (1 + np.exp(-after["opacities"]["value"].astype(np.float64))), 0.01, rtol=1e-5)
+
+
 @pytest.mark.parametrize("white, step, every, expect", [
     (True, 500, 3000, True), (False, 500, 3000, False), (True, 600, 3000, False), (False, 6000, 3000, True),
     (False, 15000, 3000, False), (True, 500, 0, False), (False, 3000, 0, False), (False, 6000, 0, False)])
