@@ -89,7 +89,7 @@ def test_checkpoint_round_trip_is_exact(scene, tmp_path):
     for k in sa:
         np.testing.assert_array_equal(sa[k], sb[k], err_msg=k)
     (da, ma), (db, mb) = a.strategy.export_state(a.strategy_state), b.strategy.export_state(b.strategy_state)
-    assert da.keys() == db.keys() == {"grad_accum", "denom", "max_screen"} and da["denom"].max() > 0
+    assert da.keys() == db.keys() == {"grad_accum", "denom", "max_screen", "reset_done"} and da["denom"].max() > 0
     for k in da:
         np.testing.assert_array_equal(da[k], db[k], err_msg=k)
     assert ma == mb and ma["draws"] > 0
