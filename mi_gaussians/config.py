@@ -175,9 +175,9 @@ class DensifyConfig:
                                              # the last densification (gsplat's prune_scale2d, 0.15 when it is on);
                                              # 0: off, the reference's effective rule (its 20 px test never fires)
     reset_opacity: float = 0.01              # opacity reset: opacity = min(opacity, reset_opacity)
-    reset_once: bool = False                 # a reset lowers only the Gaussians no reset has lowered yet (new rows
-                                             # since the previous reset, and the initial points at the first); false:
-                                             # every Gaussian at every reset, the reference
+    reset_once: bool = False                 # a reset goes only over the Gaussians no reset has gone over yet (rows
+                                             # created since the previous reset, and the initial points at the
+                                             # first); false: over every Gaussian at every reset, the reference
 
 
 @dataclass(frozen=True)
