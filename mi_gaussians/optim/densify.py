@@ -56,11 +56,11 @@ Deliberate differences from the reference code (each flagged where it is impleme
 * The opacity reset keeps a logit unchanged when its opacity is already below ``reset_opacity`` (the reference round
   trips it through sigmoid and logit: equal up to float rounding, except that very negative logits would become -inf).
 * ``reset_once`` (off by default: the reference resets every Gaussian every time) lets each Gaussian go through one
-  reset: the first after it was created (the initial points: the first reset). A row that came back from a reset has
-  earned its opacity from the images again, and lowering it again only costs the recovery (the model is
-  measured 1000 iterations after the reset at 6000 in the paper's 7k numbers) and prunes what does not recover in
-  time (gsplat's issue 1011 describes such Gaussians; its PR 1012 proposes resetting only young ones). Clones and
-  split children are new rows, not yet reset. Measured in the README ("Each rule changed alone").
+  reset: the first after it was created (the initial points: the first reset). The idea: a row that came back from a
+  reset has earned its opacity from the images again, and lowering it again would cost its recovery and prune what
+  does not recover in time (gsplat's issue 1011 describes such Gaussians; its PR 1012 proposes resetting only young
+  ones). Clones and split children are new rows, not yet reset. Measured no better than the reference's resets or
+  none (README, "Each rule changed alone").
 * ``densify_until_iter`` bounds everything with ``step < densify_until_iter`` exactly as the reference's
   ``if iteration < opt.densify_until_iter`` block (so no opacity reset at step 15000 with the defaults).
 
@@ -101,7 +101,7 @@ class DensifyState:
     grad_accum: "mi.Float"      # sum of NDC-space |dL/d mean2d| over the iterations where the Gaussian was visible
     denom: "mi.Float"           # number of those iterations
     max_screen: "mi.Float"      # largest screen radius seen, as a fraction of its view's max(width, height)
-    reset_done: "mi.Bool" = None   # an opacity reset has gone over the row (``reset_once``; kept through row changes)
+    reset_done: "mi.Bool"       # an opacity reset has gone over the row (``reset_once``; kept through row changes)
     draws: int = 0              # densifications that drew split samples (the random stream's counter)
 
     @property
