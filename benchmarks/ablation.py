@@ -56,7 +56,8 @@ CHANGES = {
 # gsplat 1.5.3's simple_trainer as it runs: every rule above where it differs from the reference
 CHANGES["gsplat"] = [*CHANGES["no_reset"], *CHANGES["ssim_valid"], *CHANGES["step_on_refine"], *CHANGES["near_0.01"],
                      *CHANGES["alpha_0.999"]]
-SETUPS = {"defaults": [], "reference": REFERENCE,
+SETUPS = {"defaults": [], "size_classes": ["row_classes=4"],    # (the defaults, frozen steps padded to size classes)
+          "reference": REFERENCE,
           **{name: [*REFERENCE, *change] for name, change in CHANGES.items()}}
 
 

@@ -240,6 +240,10 @@ class TrainConfig:
     save_iterations: tuple[int, ...] = (7_000, 30_000)   # also write point_cloud_<iter>.ply at these iterations
     freeze: bool = True                      # record the training step once and replay it (dr.freeze, no host sync
                                              # per iteration); false: trace every iteration (same results, slower)
+    row_classes: int = 0                     # > 0: frozen steps run on the model padded with inert rows to a size
+                                             # class, this many classes per doubling (one recording per class, not
+                                             # per size; optim/train_step.py); 0: at its own size, one recording per
+                                             # densification (measured faster on the CPU: README, "Performance")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -111,6 +111,7 @@ def _train_ds(ds, cfg, steps, capacity=None):
             tr.advance()
         else:
             tr._resolve()
+    tr.trim()               # (a frozen loop ends on its model padded to a size class)
     return tr
 
 
@@ -263,3 +264,94 @@ def test_the_model_of_a_refinement_iteration_is_scored_before_its_refinement(sce
     assert resumed.params.n == straight.params.n != g.n
     for k, v in straight.gaussians.numpy().items():
         np.testing.assert_allclose(resumed.gaussians.numpy()[k], v, rtol=1e-4, atol=1e-6, err_msg=k)
+
+
+def test_size_classes_train_the_unpadded_model_with_fewer_recordings(scene, one_thread):  # noqa: F811
+    """Frozen steps on the model padded with inert rows to its size class (``row_classes=4``) end with the model
+    that frozen steps at its own size (``row_classes=0``, the default) train, bit for bit, through densifications that
+    change the number of Gaussians (within a class and across classes); the padded run records once per class and
+    capacity, the other once per size."""
+    from mi_gaussians.optim.train_step import row_class
+
+    cfg = small_config(200)
+    cfg = dataclasses.replace(cfg, densify=dataclasses.replace(cfg.densify, densify_from_iter=20,
+                                                               densify_until_iter=180, densification_interval=20,
+                                                               grad_threshold=4e-4))
+    padded = _train(scene, dataclasses.replace(cfg, row_classes=4), 200)
+    own = _train(scene, dataclasses.replace(cfg, row_classes=0), 200)
+    assert_same_training(padded, own)
+    sizes = sorted(set(own.history.gaussians))
+    classes = {row_class(n) for n in sizes}
+    assert len(sizes) >= 4 and 2 <= len(classes) < len(sizes)
+    assert padded.loop.recordings < own.loop.recordings
+
+
+@pytest.mark.parametrize("antialiased", [False, True])
+def test_inert_rows_change_no_render_and_get_no_gradient(antialiased):
+    """Rows from ``inert_rows`` appended to a model: the render (colour, alpha, depth) and every gradient of the
+    model's own rows are bit-identical to the model's alone; the inert rows get radius 0 and zero gradients, and an
+    Adam step leaves them exactly in place (zero moments)."""
+    from mi_gaussians.config import OptimConfig, RasterConfig
+    from mi_gaussians.model.gaussians import Gaussians
+    from mi_gaussians.optim.train_step import inert_rows
+    from mi_gaussians.raster.rasterize import render
+    from raster_helpers import random_weights, weighted_loss
+    from scene_factory import random_scene
+
+    params_np, cam = random_scene(seed=5, n=60, sh_degree=2)
+    raster = RasterConfig(antialiased=antialiased)
+    results = []
+    for pad in (0, 37):
+        p = GaussianAdam(Gaussians.from_numpy(**params_np), OptimConfig(), 1.0)
+        if pad:
+            p.append(inert_rows(p, pad))
+            inert = {k: np.array(p[k].array) for k in p.keys()}
+        out = render(p.gaussians, cam, cfg=raster)
+        dr.backward(weighted_loss(out, random_weights(cam, seed=2)))
+        grads = {k: np.array(dr.grad(p[k]).array).reshape(p[k].shape) for k in p.keys()}
+        image = {a: np.array(getattr(out, a).array) for a in ("rgb", "alpha", "depth")}
+        radii = np.array(out.radii)
+        p.step()
+        results.append((image, grads, radii, p))
+    (image0, grads0, radii0, _), (image1, grads1, radii1, p1) = results
+    n = len(radii0)
+    for a in image0:
+        np.testing.assert_array_equal(image1[a], image0[a], err_msg=a)
+    np.testing.assert_array_equal(radii1[:n], radii0)
+    assert not radii1[n:].any() and radii0.any()
+    for k in grads0:
+        np.testing.assert_array_equal(grads1[k][:n], grads0[k], err_msg=k)
+        assert not grads1[k][n:].any(), k
+        after = np.array(p1[k].array).reshape(p1[k].shape)[n:]
+        np.testing.assert_array_equal(after.reshape(-1), inert[k].reshape(p1[k].shape)[n:].reshape(-1), err_msg=k)
+
+
+def test_row_classes_are_a_geometric_ladder():
+    """``row_class``: at least the rows asked for, a multiple of 256, at most one rung (2^(1/4)) plus rounding above,
+    the same class for every size of a rung, and the size itself with 0 classes per doubling."""
+    from mi_gaussians.optim.train_step import row_class
+
+    sizes = np.unique(np.geomspace(1, 3e6, 4000).astype(int))
+    classes = np.array([row_class(int(n)) for n in sizes])
+    assert (classes >= sizes).all() and (classes % 256 == 0).all()
+    assert (classes <= np.maximum(1024, sizes * 2 ** 0.25 + 256)).all()
+    assert (np.diff(classes) >= 0).all()
+    assert len(np.unique(classes)) < len(sizes) / 50
+    assert [row_class(n, 0) for n in (1, 1000, 12345)] == [1, 1000, 12345]
+    assert row_class(5000, 2) >= row_class(5000, 4)
+
+
+def test_a_padded_run_checkpoints_its_own_rows_and_resumes_as_it_runs(scene, tmp_path, one_thread):  # noqa: F811
+    """A run on frozen steps padded to size classes, stopped between two densifications and resumed, ends as the run
+    never stopped does, bit for bit; its checkpoint holds the model's own rows, no inert one."""
+    cfg = small_config(160)
+    cfg = dataclasses.replace(cfg, row_classes=4, checkpoint_every=1000,
+                              densify=dataclasses.replace(cfg.densify, densify_from_iter=20, densify_until_iter=140,
+                                                          densification_interval=20, grad_threshold=4e-4))
+    resumed, whole = stopped_and_resumed(scene, cfg, tmp_path, stop=90)
+    from mi_gaussians.optim.train_step import row_class
+
+    assert_same_training(resumed, whole)
+    with np.load(tmp_path / "run" / "checkpoints" / "ckpt.npz") as z:      # (the resumed run's, at its end)
+        n = len(z["param/opacities"])
+    assert n == resumed.params.n == resumed.history.gaussians[-1] != row_class(n, 4)

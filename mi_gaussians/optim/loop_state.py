@@ -41,6 +41,8 @@ class LoopStats:
 
     seconds: dict = field(default_factory=lambda: dict.fromkeys(TIME_PARTS, 0.0))
     recordings: int = 0
+    compiles: int = 0           # kernels built during training (in no kernel cache of Dr.Jit's: a new kernel)
+    cache_loads: int = 0        # kernels loaded from Dr.Jit's disk cache during training (built by an earlier run)
     overflows: int = 0
     replayed: int = 0
     traced: int = 0

@@ -73,6 +73,11 @@ class Strategy:
     init_scale: float = 1.0
     #: The most Gaussians the strategy allows (None: no bound); a larger initial point cloud is subsampled to it.
     max_gaussians: int | None = None
+    #: Whether rows that no view can see (zero opacity, appended after the others) change nothing the strategy's
+    #: per-iteration hooks compute for the other rows, so that the trainer may pad the model to a size class for its
+    #: frozen steps (:mod:`.train_step`, "Size classes"); such a strategy implements :meth:`pad_state` and
+    #: :meth:`trim_state`.
+    row_padding: bool = False
 
     @classmethod
     def from_config(cls, cfg, extent: float, white_background: bool) -> "Strategy":
@@ -83,6 +88,14 @@ class Strategy:
     def initialize_state(self, n: int):
         """A fresh state for a model of ``n`` Gaussians."""
         raise NotImplementedError
+
+    def pad_state(self, state, m: int) -> None:
+        """Append ``m`` rows of statistics that no view has touched (``row_padding`` strategies)."""
+        raise NotImplementedError(f"{type(self).__name__} does not pad its state")
+
+    def trim_state(self, state, n: int) -> None:
+        """Keep the first ``n`` rows of the state (``row_padding`` strategies)."""
+        raise NotImplementedError(f"{type(self).__name__} does not pad its state")
 
     def step_pre_backward(self, params, state, step: int | None, out, collect: bool = True) -> None:
         """Called after the render of iteration ``step`` and before ``dr.backward``; a frozen step calls it with

@@ -21,10 +21,23 @@ What freezing requires, and how this module provides it:
   failed step the model stays exactly as it was before it. The trainer reads the flags every few iterations; on an
   overflow it enlarges the capacity and replays the iterations from the failed one (same views, same backgrounds), on
   a non-finite loss it stops the run naming the iteration. The result is the same model the unfrozen loop trains.
+
+Size classes. A recording is keyed by the widths of its inputs, and Dr.Jit's LLVM backend writes some of them into
+the kernels as literals (the per-thread copies of a ``scatter_add`` target in its ``Expand`` mode, e.g. the backward
+blend kernel's gradient arrays), so a model of a new size is recorded and compiled again. Densification changes the
+size at every refinement (every 100 iterations: ~150 recordings in a 30k run). With ``TrainConfig.row_classes`` > 0
+the trainer pads the model to a size class (:func:`row_class`: a geometric ladder, 2^(1/4) apart with 4) with
+:func:`inert_rows`, which the projection culls, so that one recording serves every size in a class; it drops them
+again (:func:`trim_rows`) before anything on the host reads or changes the rows (refinement, traced iterations,
+evaluation, checkpoints). The inert rows change no value the step computes for the others (the instance list, its
+order and every sum over it are the same), so the padded run is the unpadded run, bit for bit (tested). A strategy
+opts in with ``Strategy.row_padding`` (MCMC does not: its regularizers average over the rows). Off by default: on the
+CPU the pads, trims and inert rows cost more than the recordings they save (README, "Performance").
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import drjit as dr
@@ -43,15 +56,73 @@ from .strategy import Strategy
 _CAPACITY_BASE = 4096
 
 
+def _ladder(value: float, base: int, per_doubling: int) -> int:
+    """The smallest rung of the ladder base * 2^(k / per_doubling) (rounded up to a multiple of 256) >= ``value``."""
+    k = 0
+    while True:
+        rung = -(-int(base * 2.0 ** (k / per_doubling)) // 256) * 256
+        if rung >= value:
+            return rung
+        k += 1
+
+
 def capacity_for(instances: float) -> int:
     """The smallest capacity of the ladder 4096 * 2^(k/4) (rounded up to a multiple of 256) that holds
     ``instances``."""
-    k = 0
-    while True:
-        cap = -(-int(_CAPACITY_BASE * 2.0 ** (k / 4.0)) // 256) * 256
-        if cap >= instances:
-            return cap
-        k += 1
+    return _ladder(instances, _CAPACITY_BASE, 4)
+
+
+# Size classes of the model (see "Size classes" in the module docstring): rows are padded up to the ladder
+# 1024 * 2^(k / ROW_CLASSES_PER_DOUBLING); a class is about 19 % wider than the one below it.
+ROW_CLASSES_PER_DOUBLING = 4
+_ROW_CLASS_BASE = 1024
+
+#: The opacity logit of an inert row: sigmoid(-30) ~ 1e-13, far below the 1/255 a Gaussian needs to reach any pixel
+INERT_LOGIT = -30.0
+
+
+def row_class(n: int, per_doubling: int = ROW_CLASSES_PER_DOUBLING) -> int:
+    """The number of rows a model of ``n`` Gaussians is padded to: the smallest rung of the ladder
+    1024 * 2^(k / per_doubling) (a multiple of 256) that holds them; ``per_doubling`` 0: ``n`` (no padding)."""
+    return int(n) if per_doubling <= 0 else _ladder(n, _ROW_CLASS_BASE, per_doubling)
+
+
+def inert_rows(params: GaussianAdam, m: int) -> dict:
+    """``m`` rows that change nothing a training step computes: opacity logit :data:`INERT_LOGIT` (the projection
+    culls them: no tile instance, radius 0, so no gradient, no Adam motion, no densification statistic), the identity
+    rotation, zero means, log-scales and colours."""
+    out = {}
+    for key in params.keys():
+        shape = (m,) + tuple(params[key].shape[1:])
+        size = m * (math.prod(shape[1:]) if len(shape) > 1 else 1)
+        if key == "rotations":
+            flat = dr.tile(mi.Float([1.0, 0.0, 0.0, 0.0]), m)
+        elif key == "opacities":
+            flat = dr.full(mi.Float, INERT_LOGIT, size)
+        else:
+            flat = dr.zeros(mi.Float, size)
+        out[key] = mi.TensorXf(flat, shape)
+    return out
+
+
+def pad_rows(params: GaussianAdam, state, strategy: Strategy, rows: int) -> None:
+    """Append :func:`inert_rows` to ``params`` (zero moments) and the strategy's neutral statistics to ``state`` up
+    to ``rows`` rows (nothing when the model has that many already)."""
+    m = int(rows) - params.n
+    if m <= 0:
+        return
+    params.append(inert_rows(params, m))
+    strategy.pad_state(state, m)
+    dr.eval(*[params[k] for k in params.keys()])
+
+
+def trim_rows(params: GaussianAdam, state, strategy: Strategy, n: int) -> None:
+    """Drop every row past the first ``n`` of ``params`` (values and moments) and ``state``: the inverse of
+    :func:`pad_rows`."""
+    if params.n == n:
+        return
+    params.keep(dr.arange(mi.UInt32, n))
+    strategy.trim_state(state, n)
 
 
 @dataclass
@@ -115,7 +186,8 @@ class TrainStep:
 
         def step(params: GaussianAdam, state, inputs: StepInputs, valid, sh_degree: int, update_state: bool,
                  capacity: int, n: int, exposure, pose):
-            # (n, the number of Gaussians, is an argument so that a new count always makes a new recording)
+            # (n, the number of rows (a size class when padded), is an argument so that a new count always makes a
+            # new recording)
             view = inputs.view if pose is None else pose.view(inputs.view, inputs.view_index)
             out = render(params.gaussians, view, background=inputs.background, sh_degree=sh_degree,
                          cfg=raster, capacity=capacity)

@@ -51,7 +51,8 @@ from .loop_state import History, LoopStats, ViewSampler
 from .strategies import initial_gaussians, make_strategy
 from .losses import inverse_depth_target
 from .schedules import depth_weight, position_lr, sh_degree_at
-from .train_step import StepInputs, TrainStep, capacity_for, composite_target, training_loss
+from .train_step import (StepInputs, TrainStep, capacity_for, composite_target, pad_rows, row_class, training_loss,
+                         trim_rows)
 
 CHECKPOINT = Path(run_folder.CHECKPOINT)
 
@@ -149,17 +150,40 @@ class Trainer:
         self._pending: list[_Pending] = []
         self._valid = None                 # the last queued step's ok flag (chained into the next)
         self._views: list = [None] * len(ds.train)   # ViewParams per training view, built on first use
+        # while frozen steps run on the model padded to its size class (train_step.py, "Size classes"): its own rows
+        self._rows: int | None = None
         self._bar, self._ema, self._last_psnr = None, None, None
         self._t0 = time.perf_counter()
 
     @property
     def gaussians(self) -> Gaussians:
-        """The model being trained (a view of the optimizer's tensors)."""
+        """The model being trained (a view of the optimizer's tensors, without the frozen steps' padding)."""
+        self.trim()
         return self.params.gaussians
+
+    @property
+    def n_gaussians(self) -> int:
+        """The number of Gaussians of the model (``params.n`` counts the padding while frozen steps run)."""
+        return self.params.n if self._rows is None else self._rows
+
+    def trim(self) -> None:
+        """Drop the inert rows the frozen steps run with (train_step.py, "Size classes"), so that ``params`` and
+        ``strategy_state`` hold the model's own rows; every host-side reader and writer of the rows calls it (the next
+        frozen step pads again)."""
+        if self._rows is not None:
+            trim_rows(self.params, self.strategy_state, self.strategy, self._rows)
+            self._rows = None
+
+    def _pad(self) -> None:
+        """Pad the model to its size class for the frozen steps (when the strategy allows it and ``row_classes``)."""
+        if self._rows is None and self.strategy.row_padding and self.cfg.row_classes > 0:
+            n = self.params.n
+            pad_rows(self.params, self.strategy_state, self.strategy, self._class_rows())
+            self._rows = n
 
     # ------------------------------------------------------------------ checkpoints
     def save_checkpoint(self) -> None:
-        values = self.gaussians.numpy()
+        values = self.gaussians.numpy()         # (without the padding: trimmed)
         for k, v in values.items():
             if not np.all(np.isfinite(v)):
                 raise TrainingDiverged(f"parameter {k!r} became non-finite at iteration {self.step}; "
@@ -181,6 +205,7 @@ class Trainer:
         path = self.out / CHECKPOINT
         sections, meta = checkpoint.read(path)
         try:
+            self._rows = None
             self.params = GaussianAdam(Gaussians.from_numpy(**sections.get("param", {})), self.cfg.optim, self.extent)
             self.params.import_moments(sections.get("adam", {}))
             self.strategy_state = self.strategy.import_state(sections.get("densify", {}), meta["strategy"],
@@ -222,6 +247,7 @@ class Trainer:
         iteration). Returns (loss, tile instances)."""
         cfg = self.cfg
         o = cfg.optim
+        self.trim()
         # (a Dr.Jit value, as in the frozen step, so both paths leave the optimizer state of the same type)
         self.params.set_learning_rate("means", dr.opaque(mi.Float, position_lr(step, o, self.extent)))
         g = self.params.gaussians
@@ -267,6 +293,7 @@ class Trainer:
         that iteration's evaluation, saves and checkpoint; the frozen steps' instance capacity follows the new number
         of Gaussians."""
         step, self._refine_at = self._refine_at, None
+        self.trim()
         n_before = self.params.n
         self.strategy.refine(self.params, self.strategy_state, step)
         if self.capacity is not None and self.params.n != n_before:
@@ -283,10 +310,21 @@ class Trainer:
 
     def _set_capacity_after_traced(self, instances: int) -> None:
         """The frozen steps' instance capacity after a traced iteration: room for 1.3 times what it needed, or the
-        peak of the frozen steps before it (a refinement then scales it by the change in the number of Gaussians)."""
+        peak of the frozen steps before it (a refinement then scales it by the change in the number of Gaussians),
+        scaled from the model's rows to its size class's; the capacity in use stays while it holds 1.15 to 2 times
+        that."""
         self._needed = max(instances, self._peak, 1)
-        self.capacity = capacity_for(1.3 * self._needed)
+        # Sized for the model's whole size class (the instances grow with the Gaussians), and kept while it leaves
+        # 15 % headroom and is under twice that: each new capacity, like each new class, is a new recording.
+        need = self._needed * self._class_rows() / self.n_gaussians
+        if self.capacity is None or not 1.15 * need <= self.capacity <= 2.0 * need:
+            self.capacity = capacity_for(1.3 * need)
         self._peak = 0
+
+    def _class_rows(self) -> int:
+        """The rows of the size class of the model (:func:`.train_step.row_class`; its own rows when not padded)."""
+        n = self.n_gaussians
+        return row_class(n, self.cfg.row_classes) if self.strategy.row_padding else n
 
     def _view_params(self, idx: int) -> ViewParams:
         if self._views[idx] is None:
@@ -315,6 +353,7 @@ class Trainer:
         degree = sh_degree_at(step, self.params.gaussians.sh_degree, cfg.optim.sh_increase_interval)
         if self._valid is None:
             self._valid = dr.opaque(mi.Bool, True)
+        self._pad()
         loss, ok, instances = self.train_step(self.params, self.strategy_state, inputs, self._valid, degree,
                                               self.strategy.updates_state_at(step), self.capacity, self.exposure,
                                               self.poses)
@@ -354,7 +393,7 @@ class Trainer:
         self._ema = loss if self._ema is None else 0.4 * loss + 0.6 * self._ema
         self.history.iteration.append(step)
         self.history.loss.append(loss)
-        self.history.gaussians.append(self.params.n)
+        self.history.gaussians.append(self.n_gaussians)
         self.history.seconds.append(round(self.elapsed + time.perf_counter() - self._t0, 4))
         if self._bar is not None:
             self._bar.update(1)
@@ -363,7 +402,7 @@ class Trainer:
 
     def _show_progress(self, refresh: bool = True) -> None:
         """The progress bar's loss, number of Gaussians and latest test PSNR."""
-        post = {"loss": f"{self._ema:.4f}", "N": f"{self.params.n:,}"}
+        post = {"loss": f"{self._ema:.4f}", "N": f"{self.n_gaussians:,}"}
         if self._last_psnr is not None:
             post["PSNR"] = f"{self._last_psnr:.2f}"
         self._bar.set_postfix(post, refresh=refresh)
@@ -379,12 +418,16 @@ class Trainer:
         ``self.step`` is the last iteration run or queued (a rewind after an instance overflow moves it back)."""
         step = self.step + 1
         self._t0 = time.perf_counter()
+        _, loaded, built = dr.detail.launch_stats()
         try:
             with exact_float_math():             # (the frozen and traced iterations trace the same arithmetic)
                 self._advance(step)
         finally:
             self.elapsed += time.perf_counter() - self._t0
             self._t0 = time.perf_counter()
+            _, loaded_after, built_after = dr.detail.launch_stats()
+            self.loop.compiles += built_after - built
+            self.loop.cache_loads += loaded_after - loaded
 
     def _advance(self, step: int) -> None:
         """The body of :meth:`advance` (iteration ``step``)."""
