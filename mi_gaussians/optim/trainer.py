@@ -311,13 +311,13 @@ class Trainer:
     def _set_capacity_after_traced(self, instances: int) -> None:
         """The frozen steps' instance capacity after a traced iteration: room for 1.3 times what it needed, or the
         peak of the frozen steps before it (a refinement then scales it by the change in the number of Gaussians),
-        scaled from the model's rows to its size class's; the capacity in use stays while it holds 1.15 to 2 times
+        scaled from the model's rows to its size class's; the capacity in use stays while it holds 1.25 to 2 times
         that."""
         self._needed = max(instances, self._peak, 1)
         # Sized for the model's whole size class (the instances grow with the Gaussians), and kept while it leaves
-        # 15 % headroom and is under twice that: each new capacity, like each new class, is a new recording.
+        # 25 % headroom and is under twice that: each new capacity, like each new class, is a new recording.
         need = self._needed * self._class_rows() / self.n_gaussians
-        if self.capacity is None or not 1.15 * need <= self.capacity <= 2.0 * need:
+        if self.capacity is None or not 1.25 * need <= self.capacity <= 2.0 * need:
             self.capacity = capacity_for(1.3 * need)
         self._peak = 0
 
