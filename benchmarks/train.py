@@ -105,9 +105,9 @@ def print_split(name: str, loop: dict, training_seconds: float) -> None:
     print("| part | seconds | share |\n|---|---:|---:|")
     for part, seconds in loop["seconds"].items():
         print(f"| {PARTS.get(part, part)} | {seconds:.1f} | {100 * seconds / max(training_seconds, 1e-9):.1f} % |")
-    print(f"recordings {loop['recordings']}, kernels compiled {loop.get('compiles', '?')} (and "
-          f"{loop.get('cache_loads', '?')} loaded from the kernel cache), overflows {loop['overflows']} ({loop['replayed']} iterations replayed), "
-          f"traced iterations {loop['traced']}, refinements {loop['refinements']}, syncs {loop['syncs']}; outside the "
+    print(f"recordings {loop['recordings']}, kernels built {loop.get('compiles', '?')} (and "
+          f"{loop.get('cache_loads', '?')} loaded from the kernel cache), overflows {loop['overflows']} "
+          f"({loop['replayed']} iterations replayed), traced iterations {loop['traced']}, refinements {loop['refinements']}, syncs {loop['syncs']}; outside the "
           f"training time: evaluation {loop['outside']['evaluation']:.1f} s, saving {loop['outside']['saving']:.1f} s")
 
 

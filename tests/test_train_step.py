@@ -281,16 +281,16 @@ def test_size_classes_train_the_unpadded_model_with_fewer_recordings(scene, one_
     own = _train(scene, dataclasses.replace(cfg, row_classes=0), 200)
     assert_same_training(padded, own)
     sizes = sorted(set(own.history.gaussians))
-    classes = {row_class(n) for n in sizes}
+    classes = {row_class(n, 4) for n in sizes}
     assert len(sizes) >= 4 and 2 <= len(classes) < len(sizes)
     assert padded.loop.recordings < own.loop.recordings
 
 
 @pytest.mark.parametrize("antialiased", [False, True])
-def test_inert_rows_change_no_render_and_get_no_gradient(antialiased):
+def test_inert_rows_change_no_render_and_get_no_gradient(antialiased, one_thread):
     """Rows from ``inert_rows`` appended to a model: the render (colour, alpha, depth) and every gradient of the
-    model's own rows are bit-identical to the model's alone; the inert rows get radius 0 and zero gradients, and an
-    Adam step leaves them exactly in place (zero moments)."""
+    model's own rows are bit-identical to the model's alone (on one thread: the gradients are scatter-added); the
+    inert rows get radius 0 and zero gradients, and an Adam step leaves them exactly in place (zero moments)."""
     from mi_gaussians.config import OptimConfig, RasterConfig
     from mi_gaussians.model.gaussians import Gaussians
     from mi_gaussians.optim.train_step import inert_rows
@@ -327,12 +327,12 @@ def test_inert_rows_change_no_render_and_get_no_gradient(antialiased):
 
 
 def test_row_classes_are_a_geometric_ladder():
-    """``row_class``: at least the rows asked for, a multiple of 256, at most one rung (2^(1/4)) plus rounding above,
-    the same class for every size of a rung, and the size itself with 0 classes per doubling."""
+    """``row_class`` with 4 classes per doubling: at least the rows asked for, a multiple of 256, at most one rung
+    (2^(1/4)) plus rounding above, the same class for every size of a rung; with 0, the size itself."""
     from mi_gaussians.optim.train_step import row_class
 
     sizes = np.unique(np.geomspace(1, 3e6, 4000).astype(int))
-    classes = np.array([row_class(int(n)) for n in sizes])
+    classes = np.array([row_class(int(n), 4) for n in sizes])
     assert (classes >= sizes).all() and (classes % 256 == 0).all()
     assert (classes <= np.maximum(1024, sizes * 2 ** 0.25 + 256)).all()
     assert (np.diff(classes) >= 0).all()

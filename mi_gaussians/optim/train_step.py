@@ -73,15 +73,14 @@ def capacity_for(instances: float) -> int:
 
 
 # Size classes of the model (see "Size classes" in the module docstring): rows are padded up to the ladder
-# 1024 * 2^(k / ROW_CLASSES_PER_DOUBLING); a class is about 19 % wider than the one below it.
-ROW_CLASSES_PER_DOUBLING = 4
+# 1024 * 2^(k / TrainConfig.row_classes)
 _ROW_CLASS_BASE = 1024
 
 #: The opacity logit of an inert row: sigmoid(-30) ~ 1e-13, far below the 1/255 a Gaussian needs to reach any pixel
 INERT_LOGIT = -30.0
 
 
-def row_class(n: int, per_doubling: int = ROW_CLASSES_PER_DOUBLING) -> int:
+def row_class(n: int, per_doubling: int) -> int:
     """The number of rows a model of ``n`` Gaussians is padded to: the smallest rung of the ladder
     1024 * 2^(k / per_doubling) (a multiple of 256) that holds them; ``per_doubling`` 0: ``n`` (no padding)."""
     return int(n) if per_doubling <= 0 else _ladder(n, _ROW_CLASS_BASE, per_doubling)
@@ -94,7 +93,7 @@ def inert_rows(params: GaussianAdam, m: int) -> dict:
     out = {}
     for key in params.keys():
         shape = (m,) + tuple(params[key].shape[1:])
-        size = m * (math.prod(shape[1:]) if len(shape) > 1 else 1)
+        size = m * math.prod(shape[1:])
         if key == "rotations":
             flat = dr.tile(mi.Float([1.0, 0.0, 0.0, 0.0]), m)
         elif key == "opacities":
