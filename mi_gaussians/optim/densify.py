@@ -104,8 +104,9 @@ class DensifyState:
     reset_done: "mi.Bool"       # an opacity reset has gone over the row (``reset_once``; kept through row changes)
     draws: int = 0              # densifications that drew split samples (the random stream's counter)
 
-    # What a frozen training step takes of it: the per-row arrays. ``draws`` is host state of the refinements, and as
-    # a Python int it would key a new recording after every densification that split.
+    # What a frozen training step takes of it, and what size classes pad and trim: the per-row arrays. ``draws`` is
+    # host state of the refinements, and as a Python int it would key a new recording after every densification that
+    # split.
     DRJIT_STRUCT = {"grad_accum": mi.Float, "denom": mi.Float, "max_screen": mi.Float, "reset_done": mi.Bool}
 
     @property
@@ -159,20 +160,16 @@ class DefaultStrategy(Strategy):
 
     def pad_state(self, state: DensifyState, m: int) -> None:
         """``m`` more rows of zero statistics, not yet reset (the rows :func:`.train_step.pad_rows` appends)."""
-        state.grad_accum = concat([state.grad_accum, dr.zeros(mi.Float, m)])
-        state.denom = concat([state.denom, dr.zeros(mi.Float, m)])
-        state.max_screen = concat([state.max_screen, dr.zeros(mi.Float, m)])
-        state.reset_done = concat([state.reset_done, dr.zeros(mi.Bool, m)])
-        dr.eval(state.grad_accum, state.denom, state.max_screen, state.reset_done)
+        for name, tp in DensifyState.DRJIT_STRUCT.items():
+            setattr(state, name, concat([getattr(state, name), dr.zeros(tp, m)]))
+        dr.eval(*(getattr(state, name) for name in DensifyState.DRJIT_STRUCT))
 
     def trim_state(self, state: DensifyState, n: int) -> None:
         """The first ``n`` rows of the statistics and reset marks."""
         idx = dr.arange(mi.UInt32, n)
-        state.grad_accum = dr.gather(mi.Float, state.grad_accum, idx)
-        state.denom = dr.gather(mi.Float, state.denom, idx)
-        state.max_screen = dr.gather(mi.Float, state.max_screen, idx)
-        state.reset_done = dr.gather(mi.Bool, state.reset_done, idx)
-        dr.eval(state.grad_accum, state.denom, state.max_screen, state.reset_done)
+        for name, tp in DensifyState.DRJIT_STRUCT.items():
+            setattr(state, name, dr.gather(tp, getattr(state, name), idx))
+        dr.eval(*(getattr(state, name) for name in DensifyState.DRJIT_STRUCT))
 
     def export_state(self, state: DensifyState) -> tuple[dict[str, np.ndarray], dict]:
         arrays = {"grad_accum": np.array(state.grad_accum, dtype=np.float32),

@@ -110,9 +110,8 @@ def pad_rows(params: GaussianAdam, state, strategy: Strategy, rows: int) -> None
     m = int(rows) - params.n
     if m <= 0:
         return
-    params.append(inert_rows(params, m))
+    params.append(inert_rows(params, m))      # (evaluated: every row change leaves opaque leaves)
     strategy.pad_state(state, m)
-    dr.eval(*[params[k] for k in params.keys()])
 
 
 def trim_rows(params: GaussianAdam, state, strategy: Strategy, n: int) -> None:
