@@ -31,6 +31,7 @@ DATASETS = {
     "mi_objects_colmap": ("mi_objects/colmap", ["--white-background"]),
     "mi_objects_colmap_r2": ("mi_objects/colmap", ["-r", "2", "--white-background"]),   # 100x100: 30k runs affordable
     "mi_room_colmap": ("mi_room/colmap", []),
+    "mi_room_colmap_r2": ("mi_room/colmap", ["-r", "2"]),     # 128x128
     "fox": ("fox", ["-r", "8"]),
     "fox_r4": ("fox", ["-r", "4"]),
     "maryrose": ("maryrose", ["-r", "16", "--white-background"]),
@@ -42,7 +43,7 @@ DATASETS = {
 # spelled out so that a run folder keeps its meaning when the defaults change; every other setup is "reference" with
 # one rule changed ("screen_0.1" is what mi-gs did before on a 200-pixel image: 20 px).
 REFERENCE = ["densify.opacity_reset_interval=3000", "densify.max_screen_fraction=0", "optim.ssim_padding=same",
-             "optim.step_on_refine=false", "raster.near_plane=0.2", "raster.alpha_max=0.99"]
+             "optim.step_on_refine=false", "raster.near_plane=0.2", "raster.alpha_max=0.99", "data.extent=cameras"]
 CHANGES = {
     "screen_0.1": ["densify.max_screen_fraction=0.1"],
     "screen_0.15": ["densify.max_screen_fraction=0.15"],
@@ -52,6 +53,8 @@ CHANGES = {
     "step_on_refine": ["optim.step_on_refine=true"],
     "near_0.01": ["raster.near_plane=0.01"],
     "alpha_0.999": ["raster.alpha_max=0.999"],
+    "no_world_prune": ["densify.max_world_scale=1000"],
+    "scene_extent": ["data.extent=scene"],
 }
 # gsplat 1.5.3's simple_trainer as it runs: every rule above where it differs from the reference
 CHANGES["gsplat"] = [*CHANGES["no_reset"], *CHANGES["ssim_valid"], *CHANGES["step_on_refine"], *CHANGES["near_0.01"],

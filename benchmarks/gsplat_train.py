@@ -13,7 +13,8 @@ the initial points, scales from the mean squared distance to the 3 nearest neigh
 step, shuffled each epoch; ``packed=False``; near plane 0.01. Differences, so that both fit the same data: the dataset
 is loaded by our loader (same images, cameras, train/test split, and the initial points ``mi-gs optimize`` starts
 from: the layout's SfM points, else triangulated from the posed images) without gsplat's world normalization
-(the lengths it uses are relative to the scene scale, ours ``Dataset.extent``, its ``scene_scale * 1.1``, except the
+(the lengths it uses are relative to the scene scale, its ``scene_scale * 1.1``: ``Dataset.extent``, the cameras'
+spread, which ``mi-gs optimize`` uses only under ``--set data.extent=cameras``; except the
 near plane, 0.01 here in the dataset's units, in its normalized world there), and it renders over the dataset's
 background (white for mi_objects/colmap, as our run) where simple_trainer has none.
 

@@ -33,6 +33,9 @@ SCENE_INITS = ("shapes", "random", "sfm")
 #: 'bilateral': gsplat's bilateral grids).
 EXPOSURES = ("off", "affine", "bilateral")
 #: ``OptimConfig.pose_opt_pivot``: where a pose correction turns its camera (optim/pose.py).
+#: How a run measures its scene's length scale (data.extent; data/pointcloud.py ``scene_extent``): 'scene' the larger
+#: of the cameras' spread and the depth at which they see the initial points, 'cameras' the spread alone (the reference)
+EXTENTS = ("scene", "cameras")
 POSE_PIVOTS = ("centre", "depth")
 #: ``OptimConfig.ssim_padding``: 'same', the reference's SSIM (zero padding, the mean over every pixel); 'valid',
 #: gsplat's trainer (``fused_ssim(padding="valid")``: the mean over the pixels whose window lies inside the image).
@@ -53,6 +56,10 @@ class DataConfig:
     masks: bool = True                       # COLMAP layout: composite each image over the background through its
                                              # mask in masks/ (white = object) when that folder exists
     seed: int = 0
+    extent: str = "scene"                    # the length scale that position rates, the clone/split boundary and the
+                                             # large-Gaussian prune are fractions of (EXTENTS): 'scene', the larger of
+                                             # the cameras' spread and the depth they see the initial points at;
+                                             # 'cameras', 1.1 x the cameras' spread alone (the reference, gsplat)
     pose_noise: tuple[float, float] = (0.0, 0.0)   # (degrees, fraction of the scene extent): every training camera
                                              # turned by exactly this angle about a random axis through its centre and
                                              # moved this far in a random direction (seeded by data.seed); test
@@ -264,6 +271,10 @@ class TrainConfig:
         if isinstance(dens, dict) and "opacity_reset_interval" in dens and "prune_large_after" not in dens:
             # (a record from before prune_large_after: its large-Gaussian prunes began after the first reset)
             d = {**d, "densify": {**dens, "prune_large_after": dens["opacity_reset_interval"]}}
+        data = d.get("data") if isinstance(d, dict) else None
+        if isinstance(data, dict) and "extent" not in data:
+            # (a record from before data.extent: its lengths were fractions of the cameras' spread)
+            d = {**d, "data": {**data, "extent": "cameras"}}
         return _from_json(cls, d, "").validate()
 
     def with_settings(self, assignments) -> "TrainConfig":
@@ -370,7 +381,7 @@ _OPEN_FRACTION = Range(0, 1, open_low=True, open_high=True)
 #: listed must be >= 0; tuples not listed are free (an up vector may point down).
 RULES: dict[str, "Range | tuple[str, ...]"] = {
     "strategy": tuple(STRATEGIES), "checkpoint_every": _COUNT,
-    "data.resolution": _COUNT, "data.random_points": _COUNT, "data.init": INITS,
+    "data.resolution": _COUNT, "data.random_points": _COUNT, "data.init": INITS, "data.extent": EXTENTS,
     "data.background": Range(0), "data.pose_noise": Range(0, counts=(2, 2)),
     "optim.iterations": _COUNT, "optim.position_lr_max_steps": _COUNT, "optim.sh_degree": Range(0, 3),
     "optim.sh_increase_interval": _COUNT, "optim.lambda_dssim": _FRACTION, "optim.adam_eps": _POSITIVE,

@@ -180,10 +180,14 @@ def test_a_record_round_trips_and_older_records_still_load(tmp_path):
     # first opacity reset; its pixel screen size is retired)
     del saved["train"]["densify"]["prune_large_after"], saved["train"]["densify"]["max_screen_fraction"]
     saved["train"]["densify"].update(opacity_reset_interval=1000, max_screen_size=20.0)
+    del saved["train"]["data"]["extent"]                  # (from before data.extent: the cameras' spread)
     (tmp_path / "config.json").write_text(json.dumps(saved))
     old = run_folder.RunRecord.read(tmp_path, "missing").train
     assert old.mcmc == config.MCMCConfig()
     assert old.densify.prune_large_after == 1000 and old.densify.max_screen_fraction == 0
+    assert old.data.extent == "cameras" and cfg.data.extent == "scene"
+    with pytest.raises(config.SettingError, match="data.extent.*'rig' is not one of scene, cameras"):
+        cfg.with_settings(["data.extent=rig"])
 
 
 # ---------------------------------------------------------------------------------------------- private names

@@ -160,3 +160,70 @@ def test_random_init_setting(tmp_path):
     assert not np.array_equal(cube.points_xyz, frustum.points_xyz)
     with pytest.raises(ValueError, match="random_init"):
         mig.load_dataset(scene, random_init="sphere")
+
+
+def _look_at(center, target, up=(0.0, 0.0, 1.0), size=(64, 48), f=60.0):
+    from mi_gaussians.data.camera import Camera
+
+    c = np.asarray(center, float)
+    fwd = np.asarray(target, float) - c
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, up)
+    right /= np.linalg.norm(right)
+    R = np.stack([right, np.cross(fwd, right), fwd])
+    w2c = np.eye(4)
+    w2c[:3, :3], w2c[:3, 3] = R, -R @ c
+    return Camera(width=size[0], height=size[1], fx=f, fy=f, cx=size[0] / 2, cy=size[1] / 2, world_to_camera=w2c)
+
+
+def _rigs(scale=1.0):
+    """An orbit of 16 cameras at radius 4 around points near the origin, and a forward-facing rig of 12 cameras on a
+    disk of radius 0.3 looking 5 units down at a wall of points (a room, an LLFF capture); everything times scale."""
+    rng = np.random.default_rng(3)
+    orbit = [_look_at(scale * np.array([4 * np.cos(a), 4 * np.sin(a), 1.0 + 0.5 * np.sin(2 * a)]), (0, 0, 0))
+             for a in np.linspace(0, 2 * np.pi, 16, endpoint=False)]
+    blob = scale * rng.normal(0, 0.5, (3000, 3))
+    disk = [_look_at(scale * np.array([0.3 * np.cos(a), 0.3 * np.sin(a), 0.0]),
+                     scale * np.array([0.3 * np.cos(a), 0.3 * np.sin(a), 0.0]) + scale * np.array([0, 0, 5.0]),
+                     up=(0.0, 1.0, 0.0)) for a in np.linspace(0, 2 * np.pi, 12, endpoint=False)]
+    wall = scale * np.concatenate([rng.uniform(-4, 4, (3000, 2)), np.full((3000, 1), 5.0)], axis=1)
+    return (orbit, blob), (disk, wall)
+
+
+def test_scene_extent_is_the_rigs_around_an_object_and_the_seen_depth_in_front_of_a_wall():
+    """data.extent: around an object the cameras' spread is the larger scale and both rules give the reference's
+    extent exactly; a forward-facing rig standing close together and looking 5 units away measures 5 by the depth it
+    sees, where its spread alone says 0.33; with no points, or none any camera sees, the spread; lengths scale with
+    the world."""
+    from mi_gaussians.data.pointcloud import camera_extent, scene_extent, seen_depth
+
+    (orbit, blob), (disk, wall) = _rigs()
+    spread_orbit = camera_extent(np.stack([c.center for c in orbit]))[1]
+    assert scene_extent(orbit, blob, "scene") == scene_extent(orbit, blob, "cameras") == spread_orbit
+    assert 3.5 < seen_depth(orbit, blob) < spread_orbit
+    spread_disk = camera_extent(np.stack([c.center for c in disk]))[1]
+    assert spread_disk == pytest.approx(0.33)
+    assert scene_extent(disk, wall, "cameras") == spread_disk
+    assert scene_extent(disk, wall, "scene") == pytest.approx(5.0)
+    behind = wall * np.array([1.0, 1.0, -1.0])                     # the same wall behind the cameras: not seen
+    assert seen_depth(disk, behind) is None
+    assert scene_extent(disk, behind) == scene_extent(disk, None) == spread_disk
+    (orbit7, blob7), (disk7, wall7) = _rigs(scale=7.0)
+    assert scene_extent(orbit7, blob7) == pytest.approx(7.0 * spread_orbit)
+    assert scene_extent(disk7, wall7) == pytest.approx(35.0)
+    with pytest.raises(ValueError, match="unknown rule 'rig'"):
+        scene_extent(disk, wall, "rig")
+
+
+def test_seen_depth_strides_a_large_point_set():
+    """seen_depth over at most max_points evenly strided points: the same median as over all of them, to a small
+    fraction, for a point set 10x the cap (and NaN rows ignored)."""
+    from mi_gaussians.data.pointcloud import seen_depth
+
+    _, (disk, _) = _rigs()
+    rng = np.random.default_rng(5)
+    wall = np.concatenate([rng.uniform(-4, 4, (20_000, 2)), rng.uniform(3, 9, (20_000, 1))], axis=1)
+    wall[::97] = np.nan
+    full = seen_depth(disk, wall, max_points=0)
+    assert seen_depth(disk, wall, max_points=2000) == pytest.approx(full, rel=0.03)
+    assert 6.0 < full < 8.0       # (the frustum widens with depth: more of the far points are seen)

@@ -428,4 +428,6 @@ def test_config_json_arbitrary(work, doc):
     if isinstance(dens, dict) and "opacity_reset_interval" in dens and "prune_large_after" not in dens:
         # (read as a record from before prune_large_after: its large-Gaussian prunes began after the first reset)
         want["densify"]["prune_large_after"] = dens["opacity_reset_interval"]
+    if isinstance(doc.get("data"), dict) and "extent" not in doc["data"]:
+        want["data"]["extent"] = "cameras"      # (a record from before data.extent: lengths of the cameras' spread)
     assert got == json.loads(json.dumps(want)) and record.train.validate() is record.train

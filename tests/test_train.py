@@ -324,3 +324,25 @@ def test_adam_step_on_refinement_iterations(scene, tmp_path, on):
     tr._resolve()
     assert tr.params.n != n_before and tr._refine_at is None
     assert tr.params.moments("means")[0] == t_before + int(on) + 1
+
+
+def test_the_trainer_takes_its_lengths_from_data_extent(scene, tmp_path):
+    """data.extent reaches every length rule: the same cameras around a dome of points 20 units out (each camera sees
+    the far side, about 23 away) train with an extent of that depth under 'scene' and of the cameras' spread under
+    'cameras'; the densification boundaries and the position rate follow it."""
+    from mi_gaussians.optim.schedules import position_lr
+    from mi_gaussians.optim.trainer import Trainer
+
+    base = load(scene, small_config())
+    d = np.random.default_rng(0).normal(size=(4000, 3))
+    dome = 20.0 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    ds = dataclasses.replace(base, points_xyz=dome.astype(np.float32), points_rgb=np.full((4000, 3), 0.5, np.float32))
+    extents = {}
+    for rule in ("scene", "cameras"):
+        cfg = small_config().with_settings([f"data.extent={rule}"])
+        tr = Trainer(ds, cfg, tmp_path / rule, progress=False)
+        assert tr.extent == ds.scene_extent(rule) and tr.strategy.extent == tr.extent
+        assert position_lr(1, cfg.optim, tr.extent) == pytest.approx(position_lr(1, cfg.optim, 1.0) * tr.extent)
+        extents[rule] = tr.extent
+    assert extents["cameras"] == ds.extent < 5.0
+    assert 21.0 < extents["scene"] < 24.0

@@ -38,6 +38,48 @@ def camera_extent(centers: np.ndarray) -> tuple[np.ndarray, float]:
     return mean, 1.1 * float(np.linalg.norm(c - mean, axis=1).max())
 
 
+#: Points sampled (evenly strided) by :func:`seen_depth`: the median of this many is as good as of all.
+SEEN_DEPTH_POINTS = 20_000
+
+
+def seen_depth(cameras, points: np.ndarray, max_points: int = SEEN_DEPTH_POINTS) -> float | None:
+    """How far away the cameras see the scene: per camera, the median view-space depth of the ``points`` it sees (in
+    front of it, inside its image), then the median over the cameras that see any; ``None`` when none does.
+
+    ``points``: (N, 3) world positions (the run's initial points); at most ``max_points`` of them, evenly strided."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    p = p[np.all(np.isfinite(p), axis=1)]
+    if len(p) > max_points > 0:
+        p = p[np.linspace(0, len(p) - 1, max_points).astype(np.int64)]
+    depths = []
+    for c in cameras:
+        uv, z = c.project(p)
+        seen = c.sees(uv, z)
+        if seen.any():
+            depths.append(float(np.median(z[seen])))
+    return float(np.median(depths)) if depths else None
+
+
+def scene_extent(cameras, points: np.ndarray | None, rule: str = "scene") -> float:
+    """The scene's length scale for training (``extent``): the position learning rate, the clone/split boundary and
+    the large-Gaussian prune are fractions of it (``data.extent``, :data:`mi_gaussians.config.EXTENTS`).
+
+    'cameras': :func:`camera_extent` of the camera centres (the reference's ``getNerfppNorm``, gsplat's
+    ``scene_scale``). 'scene': the larger of that and :func:`seen_depth` of ``points``. Around an object the cameras'
+    spread is the larger (they stand about as far from each other as from what they look at), so the two rules agree;
+    a forward-facing rig (a room, an LLFF capture) stands close together and looks far, and its spread alone makes
+    every length rule a fraction of the wrong size (mi_room: 0.52 by its cameras, 3.10 by the depth they see; a
+    Gaussian over 5 cm, a tenth of 0.52, was pruned from walls seen 3 m away)."""
+    cams = list(cameras)
+    extent = camera_extent(np.stack([c.center for c in cams]))[1]
+    if rule == "cameras":
+        return extent
+    if rule != "scene":
+        raise ValueError(f"scene_extent: unknown rule {rule!r} (expected one of {', '.join(config.EXTENTS)})")
+    depth = None if points is None else seen_depth(cams, points)
+    return extent if depth is None else max(extent, depth)
+
+
 def random_points_in_box(n: int, lo: Sequence[float], hi: Sequence[float], seed: int) -> tuple[np.ndarray, np.ndarray]:
     """``n`` points uniform in the axis-aligned box ``[lo, hi]`` with uniform random colours.
 

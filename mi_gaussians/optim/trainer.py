@@ -97,7 +97,7 @@ class Trainer:
         self.ds, self.cfg, self.out = ds, cfg, Path(out_dir)
         self.given_cameras = given_cameras or [v.camera for v in ds.train]
         self.progress = progress
-        self.extent = float(ds.extent)
+        self.extent = float(ds.scene_extent(cfg.data.extent))
         self.background = tuple(float(b) for b in ds.background)
         self.history = History()
         self.step = 0
@@ -138,7 +138,8 @@ class Trainer:
             if cfg.optim.pose_opt_pivot == "depth":    # (the scene's points as the run starts: its initial points)
                 from ..data.pose_noise import reprojection_points
                 pivots = pivot_depths([v.camera for v in ds.train], reprojection_points(ds.points_xyz), ds.center)
-            self.poses = PoseDeltas(len(ds.train), cfg.optim, self.extent, pivots)
+            # (translations in units of the cameras' spread, as gsplat's, which normalises the rig: not data.extent)
+            self.poses = PoseDeltas(len(ds.train), cfg.optim, float(ds.extent), pivots)
         # the frozen training step (see train_step.py) and the state of the loop around it
         self.train_step = TrainStep(self.strategy, cfg.raster, cfg.optim.lambda_dssim, self.background,
                                     freeze=cfg.freeze, ssim_padding=cfg.optim.ssim_padding)
