@@ -32,10 +32,11 @@ SCENE_INITS = ("shapes", "random", "sfm")
 #: ``OptimConfig.exposure``: per-image colour compensation ('affine': the 2024 reference's --train_test_exp;
 #: 'bilateral': gsplat's bilateral grids).
 EXPOSURES = ("off", "affine", "bilateral")
-#: ``OptimConfig.pose_opt_pivot``: where a pose correction turns its camera (optim/pose.py).
-#: How a run measures its scene's length scale (data.extent; data/pointcloud.py ``scene_extent``): 'scene' the larger
-#: of the cameras' spread and the depth at which they see the initial points, 'cameras' the spread alone (the reference)
+#: ``DataConfig.extent``: how a run measures its scene's length scale (data/pointcloud.py ``scene_extent``): 'scene'
+#: the larger of the cameras' spread and the depth at which they see the initial points, 'cameras' the spread alone
+#: (the reference's).
 EXTENTS = ("scene", "cameras")
+#: ``OptimConfig.pose_opt_pivot``: where a pose correction turns its camera (optim/pose.py).
 POSE_PIVOTS = ("centre", "depth")
 #: ``OptimConfig.ssim_padding``: 'same', the reference's SSIM (zero padding, the mean over every pixel); 'valid',
 #: gsplat's trainer (``fused_ssim(padding="valid")``: the mean over the pixels whose window lies inside the image).

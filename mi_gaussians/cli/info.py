@@ -139,4 +139,5 @@ def _dataset_info(path: Path, resolution: int) -> dict:
             "image_size": [cam.width, cam.height], "fx": round(cam.fx, 4), "fy": round(cam.fy, 4),
             "cx": round(cam.cx, 4), "cy": round(cam.cy, 4), "color_space": ds.color_space,
             "points": 0 if ds.points_xyz is None else int(ds.points_xyz.shape[0]),
-            "extent": round(ds.extent, 6), "scene_extent": round(ds.scene_extent(), 6), "images_checked": len(ds.views), "unreadable_images": unreadable}
+            "extent": round(ds.extent, 6), "scene_extent": round(ds.scene_extent(), 6),
+            "images_checked": len(ds.views), "unreadable_images": unreadable}

@@ -136,8 +136,8 @@ def _count(mask) -> int:
 
 class DefaultStrategy(Strategy):
     """The reference 3DGS densification (see the module docstring). ``extent``: the scene extent
-    (``Dataset.extent``); ``seed``: of the split samples; ``white_background``: the reference also resets the
-    opacities at ``densify_from_iter`` when it trains on a white background."""
+    (``Dataset.scene_extent`` under the run's ``data.extent``); ``seed``: of the split samples; ``white_background``:
+    the reference also resets the opacities at ``densify_from_iter`` when it trains on a white background."""
 
     def __init__(self, cfg: DensifyConfig, extent: float, seed: int = 0, white_background: bool = False):
         check_section("densify", cfg)
