@@ -34,8 +34,8 @@ SCENE_INITS = ("shapes", "random", "sfm")
 EXPOSURES = ("off", "affine", "bilateral")
 #: ``DataConfig.extent``: how a run measures its scene's length scale (data/pointcloud.py ``scene_extent``): 'scene'
 #: the larger of the cameras' spread and the depth at which they see the initial points, 'cameras' the spread alone
-#: (the reference's).
-EXTENTS = ("scene", "cameras")
+#: (the reference's), 'depth' the depth alone.
+EXTENTS = ("scene", "cameras", "depth")
 #: ``OptimConfig.pose_opt_pivot``: where a pose correction turns its camera (optim/pose.py).
 POSE_PIVOTS = ("centre", "depth")
 #: ``OptimConfig.ssim_padding``: 'same', the reference's SSIM (zero padding, the mean over every pixel); 'valid',
@@ -60,7 +60,8 @@ class DataConfig:
     extent: str = "scene"                    # the length scale that position rates, the clone/split boundary and the
                                              # large-Gaussian prune are fractions of (EXTENTS): 'scene', the larger of
                                              # the cameras' spread and the depth they see the initial points at;
-                                             # 'cameras', 1.1 x the cameras' spread alone (the reference, gsplat)
+                                             # 'cameras', 1.1 x the cameras' spread alone (the reference, gsplat);
+                                             # 'depth', the depth alone
     pose_noise: tuple[float, float] = (0.0, 0.0)   # (degrees, fraction of the scene extent): every training camera
                                              # turned by exactly this angle about a random axis through its centre and
                                              # moved this far in a random direction (seeded by data.seed); test

@@ -208,9 +208,14 @@ def test_scene_extent_is_the_rigs_around_an_object_and_the_seen_depth_in_front_o
     behind = wall * np.array([1.0, 1.0, -1.0])                     # the same wall behind the cameras: not seen
     assert seen_depth(disk, behind) is None
     assert scene_extent(disk, behind) == scene_extent(disk, None) == spread_disk
+    # 'depth': the seen depth alone, around the object too; the spread when nothing is seen
+    assert scene_extent(orbit, blob, "depth") == seen_depth(orbit, blob)
+    assert scene_extent(disk, wall, "depth") == pytest.approx(5.0)
+    assert scene_extent(disk, behind, "depth") == scene_extent(disk, None, "depth") == spread_disk
     (orbit7, blob7), (disk7, wall7) = _rigs(scale=7.0)
-    assert scene_extent(orbit7, blob7) == pytest.approx(7.0 * spread_orbit)
-    assert scene_extent(disk7, wall7) == pytest.approx(35.0)
+    for rule in ("scene", "cameras", "depth"):
+        assert scene_extent(orbit7, blob7, rule) == pytest.approx(7.0 * scene_extent(orbit, blob, rule))
+        assert scene_extent(disk7, wall7, rule) == pytest.approx(7.0 * scene_extent(disk, wall, rule))
     with pytest.raises(ValueError, match="unknown rule 'rig'"):
         scene_extent(disk, wall, "rig")
 

@@ -338,11 +338,11 @@ def test_the_trainer_takes_its_lengths_from_data_extent(scene, tmp_path):
     dome = 20.0 * d / np.linalg.norm(d, axis=1, keepdims=True)
     ds = dataclasses.replace(base, points_xyz=dome.astype(np.float32), points_rgb=np.full((4000, 3), 0.5, np.float32))
     extents = {}
-    for rule in ("scene", "cameras"):
+    for rule in ("scene", "cameras", "depth"):
         cfg = small_config().with_settings([f"data.extent={rule}"])
         tr = Trainer(ds, cfg, tmp_path / rule, progress=False)
         assert tr.extent == ds.scene_extent(rule) and tr.strategy.extent == tr.extent
         assert position_lr(1, cfg.optim, tr.extent) == pytest.approx(position_lr(1, cfg.optim, 1.0) * tr.extent)
         extents[rule] = tr.extent
     assert extents["cameras"] == ds.extent < 5.0
-    assert 21.0 < extents["scene"] < 24.0
+    assert 21.0 < extents["scene"] < 24.0 and extents["depth"] == extents["scene"]

@@ -69,15 +69,19 @@ def scene_extent(cameras, points: np.ndarray | None, rule: str = "scene") -> flo
     spread is the larger (they stand about as far from each other as from what they look at), so the two rules agree;
     a forward-facing rig (a room, an LLFF capture) stands close together and looks far, and its spread alone makes
     every length rule a fraction of the wrong size (mi_room: 0.52 by its cameras, 3.10 by the depth they see; a
-    Gaussian over 5 cm, a tenth of 0.52, was pruned from walls seen 3 m away)."""
+    Gaussian over 5 cm, a tenth of 0.52, was pruned from walls seen 3 m away). 'depth': the seen depth alone, which
+    does not depend on the rig's shape (an orbit's spread, a hemisphere's and a ring's differ at the same distance);
+    each falls back to the spread when no camera sees a point."""
     cams = list(cameras)
     extent = camera_extent(np.stack([c.center for c in cams]))[1]
     if rule == "cameras":
         return extent
-    if rule != "scene":
+    if rule not in ("scene", "depth"):
         raise ValueError(f"scene_extent: unknown rule {rule!r} (expected one of {', '.join(config.EXTENTS)})")
     depth = None if points is None else seen_depth(cams, points)
-    return extent if depth is None else max(extent, depth)
+    if depth is None:
+        return extent
+    return depth if rule == "depth" else max(extent, depth)
 
 
 def random_points_in_box(n: int, lo: Sequence[float], hi: Sequence[float], seed: int) -> tuple[np.ndarray, np.ndarray]:
