@@ -46,7 +46,8 @@ def seen_depth(cameras, points: np.ndarray, max_points: int = SEEN_DEPTH_POINTS)
     """How far away the cameras see the scene: per camera, the median view-space depth of the ``points`` it sees (in
     front of it, inside its image), then the median over the cameras that see any; ``None`` when none does.
 
-    ``points``: (N, 3) world positions (the run's initial points); at most ``max_points`` of them, evenly strided."""
+    ``points``: (N, 3) world positions (the run's initial points); at most ``max_points`` of them, evenly strided
+    (``max_points <= 0``: all of them)."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     p = p[np.all(np.isfinite(p), axis=1)]
     if len(p) > max_points > 0:
