@@ -57,6 +57,7 @@ CHANGES = {
     "scene_extent": ["data.extent=scene"],
     "scene_extent_no_world_prune": ["data.extent=scene", "densify.max_world_scale=1000"],
     "depth_extent": ["data.extent=depth"],
+    "depth_extent_no_world_prune": ["data.extent=depth", "densify.max_world_scale=1000"],
 }
 # gsplat 1.5.3's simple_trainer as it runs: every rule above where it differs from the reference
 CHANGES["gsplat"] = [*CHANGES["no_reset"], *CHANGES["ssim_valid"], *CHANGES["step_on_refine"], *CHANGES["near_0.01"],

@@ -32,9 +32,9 @@ SCENE_INITS = ("shapes", "random", "sfm")
 #: ``OptimConfig.exposure``: per-image colour compensation ('affine': the 2024 reference's --train_test_exp;
 #: 'bilateral': gsplat's bilateral grids).
 EXPOSURES = ("off", "affine", "bilateral")
-#: ``DataConfig.extent``: how a run measures its scene's length scale (data/pointcloud.py ``scene_extent``): 'scene'
-#: the larger of the cameras' spread and the depth at which they see the initial points, 'cameras' the spread alone
-#: (the reference's), 'depth' the depth alone.
+#: ``DataConfig.extent``: how a run measures its scene's length scale (data/pointcloud.py ``scene_extent``): 'depth'
+#: the depth at which the cameras see the initial points (the default), 'scene' the larger of that and the cameras'
+#: spread, 'cameras' the spread alone (the reference's, gsplat's).
 EXTENTS = ("scene", "cameras", "depth")
 #: ``OptimConfig.pose_opt_pivot``: where a pose correction turns its camera (optim/pose.py).
 POSE_PIVOTS = ("centre", "depth")
@@ -57,11 +57,11 @@ class DataConfig:
     masks: bool = True                       # COLMAP layout: composite each image over the background through its
                                              # mask in masks/ (white = object) when that folder exists
     seed: int = 0
-    extent: str = "scene"                    # the length scale that position rates, the clone/split boundary and the
-                                             # large-Gaussian prune are fractions of (EXTENTS): 'scene', the larger of
-                                             # the cameras' spread and the depth they see the initial points at;
-                                             # 'cameras', 1.1 x the cameras' spread alone (the reference, gsplat);
-                                             # 'depth', the depth alone
+    extent: str = "depth"                    # the length scale that position rates, the clone/split boundary and the
+                                             # large-Gaussian prune are fractions of (EXTENTS): 'depth', the depth the
+                                             # cameras see the initial points at; 'scene', the larger of that and the
+                                             # cameras' spread; 'cameras', 1.1 x the cameras' spread alone (the
+                                             # reference, gsplat)
     pose_noise: tuple[float, float] = (0.0, 0.0)   # (degrees, fraction of the scene extent): every training camera
                                              # turned by exactly this angle about a random axis through its centre and
                                              # moved this far in a random direction (seeded by data.seed); test

@@ -185,7 +185,7 @@ def test_a_record_round_trips_and_older_records_still_load(tmp_path):
     old = run_folder.RunRecord.read(tmp_path, "missing").train
     assert old.mcmc == config.MCMCConfig()
     assert old.densify.prune_large_after == 1000 and old.densify.max_screen_fraction == 0
-    assert old.data.extent == "cameras" and cfg.data.extent == "scene"
+    assert old.data.extent == "cameras" and cfg.data.extent == "depth"
     with pytest.raises(config.SettingError, match="data.extent.*'rig' is not one of scene, cameras, depth"):
         cfg.with_settings(["data.extent=rig"])
 

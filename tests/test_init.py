@@ -212,12 +212,29 @@ def test_scene_extent_is_the_rigs_around_an_object_and_the_seen_depth_in_front_o
     assert scene_extent(orbit, blob, "depth") == seen_depth(orbit, blob)
     assert scene_extent(disk, wall, "depth") == pytest.approx(5.0)
     assert scene_extent(disk, behind, "depth") == scene_extent(disk, None, "depth") == spread_disk
+    assert scene_extent(orbit, blob) == seen_depth(orbit, blob)      # the default rule: DataConfig's, 'depth'
     (orbit7, blob7), (disk7, wall7) = _rigs(scale=7.0)
     for rule in ("scene", "cameras", "depth"):
         assert scene_extent(orbit7, blob7, rule) == pytest.approx(7.0 * scene_extent(orbit, blob, rule))
         assert scene_extent(disk7, wall7, rule) == pytest.approx(7.0 * scene_extent(disk, wall, rule))
     with pytest.raises(ValueError, match="unknown rule 'rig'"):
         scene_extent(disk, wall, "rig")
+
+
+def test_the_seen_depth_does_not_depend_on_the_rigs_shape():
+    """A ring of cameras and a cap of cameras above, all 4 units from the same points: their spreads differ by a
+    third (the cap's centre is raised towards its cameras), the depth they see the points at does not."""
+    from mi_gaussians.data.pointcloud import camera_extent, scene_extent
+
+    (_, blob), _ = _rigs()
+    ring = [_look_at(4 * np.array([np.cos(a), np.sin(a), 0.0]), (0, 0, 0))
+            for a in np.linspace(0, 2 * np.pi, 16, endpoint=False)]
+    cap = [_look_at(4 * np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)]), (0, 0, 0))
+           for a in np.linspace(0, 2 * np.pi, 8, endpoint=False) for e in (0.8, 1.0, 1.2)]
+    spreads = [camera_extent(np.stack([c.center for c in rig]))[1] for rig in (ring, cap)]
+    assert spreads[0] == pytest.approx(4.4) and spreads[1] < 0.75 * spreads[0]
+    assert scene_extent(cap, blob, "depth") == pytest.approx(scene_extent(ring, blob, "depth"), rel=0.02)
+    assert scene_extent(ring, blob, "depth") == pytest.approx(4.0, rel=0.05)   # (the median point: the centre)
 
 
 def test_seen_depth_strides_a_large_point_set():

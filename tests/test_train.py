@@ -58,6 +58,7 @@ def test_psnr_rises_and_outputs_are_written(scene, tmp_path):
     assert m["gaussians"] == mig.Gaussians.load_ply(out / "point_cloud.ply").n
     assert set(m["views"]) == {v.name for v in ds.test}
     assert m["iterations_per_second"] > 0
+    assert m["extent"] == pytest.approx(ds.scene_extent(cfg.data.extent), rel=1e-5)
     # where the time went: the parts of the training time add up to it, and the loop's counts are the run's
     loop, refining = m["loop"], [s for s in range(1, 601) if tr.strategy.refines_at(s)]
     assert sum(loop["seconds"].values()) == pytest.approx(m["training_seconds"], abs=0.01)

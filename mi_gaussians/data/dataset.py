@@ -115,7 +115,7 @@ class Dataset:
         """The rig's extent: 1.1 * max distance of the train camera centres from their mean (3DGS ``getNerfppNorm``)."""
         return _pc.camera_extent(np.stack([v.camera.center for v in self.train]))[1]
 
-    def scene_extent(self, rule: str = "scene") -> float:
+    def scene_extent(self, rule: str = DataConfig.extent) -> float:
         """The length scale a run trains with (``data.extent``; :func:`.pointcloud.scene_extent` of the train
         cameras and ``points_xyz``)."""
         return _pc.scene_extent([v.camera for v in self.train], self.points_xyz, rule)

@@ -9,7 +9,8 @@ Outputs (all written atomically into ``out_dir``)::
     point_cloud.ply              the final model (3DGS layout); point_cloud_<iter>.ply at cfg.save_iterations
     renders/<view>.exr|.png      test-view renders (EXR linear, PNG display-encoded)
     compare/<view>.png           reference | render | error
-    metrics.json                 PSNR / SSIM (LPIPS when available) per test view and mean, Gaussians, time
+    metrics.json                 PSNR / SSIM (LPIPS when available) per test view and mean, Gaussians, the
+                                 scene extent (data.extent), time
     curves.png, history.json     loss, test PSNR and number of Gaussians against the iteration
 
 Iterations are frozen (:mod:`.train_step`: recorded once with ``dr.freeze``, replayed, nothing read back) and queued;
@@ -573,6 +574,7 @@ class Trainer:
             "protocol": PROTOCOLS["full"],
             **scores_report(scores, note),
             "gaussians": g.n,
+            "extent": round(self.extent, 6),     # (the length the run's length rules were fractions of: data.extent)
             "iterations": self.step,
             "training_seconds": round(self.elapsed, 3),
             "iterations_per_second": round(self.step / self.elapsed, 3) if self.elapsed > 0 else None,
