@@ -40,7 +40,8 @@ myst_heading_anchors = 4
 # autodoc: the public API as the code documents it (Google / NumPy sections through napoleon)
 autodoc_member_order = "bysource"
 autodoc_typehints = "description"
-autodoc_default_options = {"members": True, "show-inheritance": False}
+autodoc_class_signature = "separated"       # a class's name alone; its constructor's parameters under it
+autodoc_default_options = {"members": True}
 napoleon_google_docstring = True
 napoleon_numpy_docstring = True
 

@@ -381,6 +381,12 @@ def _outdated(app, env, added, changed, removed):
     return sorted(getattr(env, "mig_generated", set()) - set(removed))
 
 
+def _no_generated_dataclass_docstring(app, what, name, obj, options, lines):
+    # a dataclass without a docstring gets "Name(field: type, ...)" from @dataclass: the fields are shown anyway
+    if what == "class" and lines and re.match(rf"^{re.escape(name.rsplit('.', 1)[-1])}\(", lines[0]):
+        lines.clear()
+
+
 def setup(app):
     app.add_object_type("setting", "setting", objname="training setting",
                         indextemplate="pair: %s; training setting")
@@ -390,4 +396,5 @@ def setup(app):
     app.add_role("monosp", monosp_role)
     app.connect("source-read", _source_read)
     app.connect("env-get-outdated", _outdated)
+    app.connect("autodoc-process-docstring", _no_generated_dataclass_docstring)
     return {"version": "1", "parallel_read_safe": True, "parallel_write_safe": True, "env_version": 1}
