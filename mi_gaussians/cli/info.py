@@ -1,5 +1,5 @@
-"""``mi-gs info PATH``: a summary of a model (.ply, .splat, .spz), a run folder, a dataset folder or a Mitsuba scene
-(.xml), as JSON."""
+"""``mi-gs info PATH``: a summary of a model (.ply, .splat, .spz, .glb, .gltf), a run folder, a dataset folder or a
+Mitsuba scene (.xml), as JSON."""
 
 from __future__ import annotations
 
@@ -7,15 +7,15 @@ import json
 import sys
 from pathlib import Path
 
-from .args import add_define, existing, positive_int
+from .args import add_define, existing, model_suffixes, positive_int
 from .errors import InputError
 
 
 def add_parser(sub) -> None:
     from ..config import DataConfig
 
-    s = sub.add_parser("info", help="summarize a 3DGS model (.ply, .splat, .spz), a run folder (mi-gs optimize -o), a "
-                                    "dataset folder or a Mitsuba scene .xml")
+    s = sub.add_parser("info", help="summarize a 3DGS model (.ply, .splat, .spz, .glb, .gltf), a run folder (mi-gs "
+                                    "optimize -o), a dataset folder or a Mitsuba scene .xml")
     s.add_argument("path")
     s.add_argument("-r", "--resolution", type=positive_int, default=DataConfig().resolution,
                    help="dataset resolution divisor")
@@ -29,7 +29,7 @@ def run(args) -> int:
     suffix = path.suffix.lower()
     if suffix == ".ply":
         info = _ply_info(path)
-    elif suffix in (".splat", ".spz"):
+    elif suffix in model_suffixes():
         info = _web_info(path)
     elif suffix == ".xml":
         info = _scene_info(path, args.define)
@@ -78,12 +78,11 @@ def _model_info(path: Path, p: dict, **extra) -> dict:
 
 
 def _web_info(path: Path) -> dict:
-    from ..model.web_formats import read_splat, read_spz
+    """A model file of another format than PLY: its summary and what the file says beside the Gaussians."""
+    from ..model.web_formats import read_model_info
 
-    if path.suffix.lower() == ".splat":
-        return _model_info(path, read_splat(path), format="splat")
-    params, antialiased = read_spz(path)
-    return _model_info(path, params, format="spz", antialiased=bool(antialiased))
+    params, meta = read_model_info(path)
+    return _model_info(path, params, **meta)
 
 
 def _run_info(path: Path) -> dict:

@@ -1,5 +1,5 @@
-"""``mi-gs render``: a model (.ply, .splat, .spz) from a camera JSON or from a dataset's views, or any Mitsuba scene
-(.xml) with its own integrator."""
+"""``mi-gs render``: a model (.ply, .splat, .spz, .glb, .gltf) from a camera JSON or from a dataset's views, or any
+Mitsuba scene (.xml) with its own integrator."""
 
 from __future__ import annotations
 
@@ -7,16 +7,16 @@ import os
 from pathlib import Path
 
 from .args import (add_background, add_define, add_model_input, add_output, background, existing, is_model,
-                   non_negative_int, positive_int, sh_degree)
+                   model_suffixes, non_negative_int, positive_int, sh_degree)
 from .errors import InputError, warn
 
 
 def add_parser(sub) -> None:
     from ..config import DataConfig
 
-    s = sub.add_parser("render", help="render a model (.ply, .splat, .spz; from a camera JSON or a dataset's views) "
-                                      "or a scene .xml")
-    add_model_input(s, "model.ply|.splat|.spz or scene.xml",
+    s = sub.add_parser("render", help="render a model (.ply, .splat, .spz, .glb, .gltf; from a camera JSON or a "
+                                      "dataset's views) or a scene .xml")
+    add_model_input(s, "model.ply|.splat|.spz|.glb|.gltf or scene.xml",
                     antialiased="render with Mip-Splatting's 2D filter (default: as the run whose config.json sits "
                                 "beside the model was trained, or as an .spz file records, else off)")
     s.add_argument("--camera", help="camera JSON (see README)")
@@ -41,7 +41,7 @@ def run(args) -> int:
     if src.suffix.lower() == ".xml":
         return _render_scene_file(args, src, out)
     if not is_model(src):
-        raise InputError(f"{src}: expected a model (.ply, .splat or .spz) or a Mitsuba scene .xml")
+        raise InputError(f"{src}: expected a model ({', '.join(model_suffixes())}) or a Mitsuba scene .xml")
     if (args.camera is None) == (args.dataset is None):
         raise InputError("give exactly one of --camera CAM.json or --dataset DIR")
     if args.dataset is not None:

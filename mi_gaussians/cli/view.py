@@ -5,14 +5,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .args import (add_background, add_model_input, add_viewer_options, background, existing, is_model, start_viewer,
-                   viewer_config)
+from .args import (add_background, add_model_input, add_viewer_options, background, existing, is_model,
+                   model_suffixes, start_viewer, viewer_config)
 from .errors import InputError, warn
 
 
 def add_parser(sub) -> None:
     s = sub.add_parser("view", help="look at a model in the browser (viser): orbit, render modes, dataset cameras")
-    add_model_input(s, "model.ply|.splat|.spz, a point-cloud .ply (mi-gs points), or an mi-gs optimize output folder",
+    add_model_input(s, "model.ply|.splat|.spz|.glb|.gltf, a point-cloud .ply (mi-gs points), or an mi-gs optimize "
+                       "output folder",
                     antialiased="render with Mip-Splatting's 2D filter (default: as the run was trained)")
     s.add_argument("--camera", help="camera JSON to start from (default: the dataset's first camera)")
     add_background(s, "background colour (1 or 3 values; default: the run's)")
@@ -45,7 +46,7 @@ def run(args) -> int:
     if src.is_dir() and not model.is_file():
         raise InputError(f"{model}: missing (is {src} an mi-gs optimize output folder?)")
     if not is_model(model):
-        raise InputError(f"{src}: expected a model (.ply, .splat or .spz) or an mi-gs optimize output folder")
+        raise InputError(f"{src}: expected a model ({', '.join(model_suffixes())}) or an mi-gs optimize output folder")
     raster = model_raster_config(model, args.antialiased, warn=warn)
     views, color_space, bg = [], "srgb", (0.0, 0.0, 0.0)
     if (model.parent / run_folder.CONFIG).is_file():

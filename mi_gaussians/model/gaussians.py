@@ -95,8 +95,8 @@ class Gaussians:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Gaussians":
-        """A model from a ``.ply`` (as :meth:`load_ply`), ``.splat`` or ``.spz`` file (by the suffix; see
-        :mod:`.web_formats`)."""
+        """A model from a ``.ply`` (as :meth:`load_ply`), ``.splat``, ``.spz``, ``.glb`` or ``.gltf`` file (by the
+        suffix; see :mod:`.web_formats`)."""
         from .web_formats import read_model
 
         return cls.from_numpy(**read_model(path)[0])
