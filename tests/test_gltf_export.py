@@ -63,6 +63,15 @@ def parse_glb(data: bytes) -> tuple[dict, bytes]:
     return json.loads(data[20:20 + jlen]), data[28 + jlen:]
 
 
+def pack_glb(doc: dict, binary: bytes) -> bytes:
+    """A GLB of the JSON ``doc`` and the binary chunk ``binary`` (padded as the GLB layout says)."""
+    text = json.dumps(doc).encode()
+    text += b" " * (-len(text) % 4)
+    binary += b"\0" * (-len(binary) % 4)
+    return (struct.pack("<III", 0x46546C67, 2, 28 + len(text) + len(binary)) + struct.pack("<II", len(text), 0x4E4F534A)
+            + text + struct.pack("<II", len(binary), 0x004E4942) + binary)
+
+
 def attribute(doc, binary, name) -> np.ndarray:
     acc = doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"][name]]
     view = doc["bufferViews"][acc["bufferView"]]
@@ -216,12 +225,7 @@ class Builder:
 
     def glb(self) -> bytes:
         assert len(self.chunks) == 1
-        text = json.dumps(self.doc).encode()
-        text += b" " * (-len(text) % 4)
-        binary = bytes(self.chunks[0]) + b"\0" * (-len(self.chunks[0]) % 4)
-        return (struct.pack("<III", 0x46546C67, 2, 28 + len(text) + len(binary))
-                + struct.pack("<II", len(text), 0x4E4F534A) + text
-                + struct.pack("<II", len(binary), 0x004E4942) + binary)
+        return pack_glb(self.doc, bytes(self.chunks[0]))
 
 
 def splat_primitive(b: Builder, p: dict, quantized: bool = False) -> dict:
