@@ -9,6 +9,7 @@ from __future__ import annotations
 import base64
 import json
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -400,3 +401,35 @@ def test_written_path_is_atomic(tmp_path):
         write_model(tmp_path / name, p, color_space="linear")
         assert np.array_equal(read_model(tmp_path / name)[0]["sh_dc"], p["sh_dc"])
     assert sorted(x.name for x in tmp_path.iterdir()) == ["a.glb", "a.gltf"]        # no temporary files left
+
+
+def test_cli_export_records_the_colour_space(tmp_path):
+    """``mi-gs export -o x.glb`` tags the colours as the model's: a glTF input's own tag, else the dataset of the run
+    beside the model, else sRGB; ``--color-space`` says otherwise."""
+    import shutil
+
+    from mi_gaussians.config import TrainConfig
+    from mi_gaussians.run_folder import RunRecord
+    from test_cli import run
+
+    root = Path(__file__).resolve().parents[1]
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    shutil.copy(root / "scenes" / "tiny_gaussians.ply", run_dir / "point_cloud.ply")
+    RunRecord(dataset=str(root / "tests" / "data" / "tiny_colmap"), train=TrainConfig()).write(run_dir)
+
+    def export(src, name, *extra):
+        r = run("export", src, "-o", tmp_path / name, *extra)
+        assert r.returncode == 0, r.stderr
+        return json.loads(r.stdout)["color_space"], r.stderr
+
+    assert export(run_dir / "point_cloud.ply", "a.glb") == ("srgb", "")
+    assert export(run_dir / "point_cloud.ply", "lin.gltf", "--color-space", "linear")[0] == "linear"
+    assert export(tmp_path / "lin.gltf", "b.glb") == ("linear", "")              # (the input's own tag)
+    (run_dir / "config.json").write_text('{"dataset": 3}')                      # (one warning for the record)
+    space, err = export(run_dir / "point_cloud.ply", "c.glb")
+    assert space == "srgb" and err.startswith("mi-gs: warning: rendering with the default settings: ") and \
+        err.count("\n") == 1, err
+    space, err = export(run_dir / "point_cloud.ply", "d.glb", "--no-antialiased")
+    assert space == "srgb" and err.startswith("mi-gs: warning: writing the colours as sRGB (give --color-space") and \
+        err.count("\n") == 1, err

@@ -29,9 +29,10 @@ def add_parser(sub) -> None:
                         "as the dataset of the run whose config.json sits beside the model, else srgb)")
 
 
-def _color_space(src: Path, meta: dict) -> str:
+def _color_space(src: Path, meta: dict, record_warned: bool) -> str:
     """The model's colour space: a glTF input's, else that of the dataset its run (config.json beside it) trained
-    on, else sRGB (models trained on photos)."""
+    on, else sRGB (models trained on photos). ``record_warned``: the run's record was found unreadable and said so
+    already."""
     if "color_space" in meta:
         return meta["color_space"]
     from ..run_folder import CONFIG, RunRecord
@@ -40,12 +41,17 @@ def _color_space(src: Path, meta: dict) -> str:
         return "srgb"
     from ..runs import run_dataset
 
+    why = "give --color-space to say otherwise"
     try:
         record = RunRecord.read(src.parent, "")
+    except ValueError as e:
+        if not record_warned:
+            warn(f"writing the colours as sRGB ({why}): {e}")
+        return "srgb"
+    try:
         return run_dataset(record, src.parent, render_missing=False, progress=False, log=None).color_space
     except (ValueError, OSError, RuntimeError) as e:
-        warn(f"writing the colours as sRGB (give --color-space to say otherwise): the run's dataset cannot be "
-             f"read ({e})")
+        warn(f"writing the colours as sRGB ({why}): the run's dataset cannot be read ({e})")
         return "srgb"
 
 
@@ -76,11 +82,17 @@ def run(args) -> int:
     kind = out.suffix.lower()
     if kind == ".splat" and params["sh_rest"].shape[1]:
         print(f"mi-gs: note: .splat holds SH degree 0 only; the higher bands of {src} are dropped", file=sys.stderr)
-    antialiased = model_raster_config(src, args.antialiased, warn=warn).antialiased
+    warned = []
+
+    def record_warning(line: str) -> None:
+        warned.append(line)
+        warn(line)
+
+    antialiased = model_raster_config(src, args.antialiased, warn=record_warning).antialiased
     if antialiased and kind != ".spz":
         print(f"mi-gs: note: {out.suffix} cannot record that {src} renders anti-aliased: render it with "
               "--antialiased", file=sys.stderr)
-    color_space = args.color_space or (_color_space(src, meta) if kind in (".glb", ".gltf") else "srgb")
+    color_space = args.color_space or (_color_space(src, meta, bool(warned)) if kind in (".glb", ".gltf") else "srgb")
     write_model(out, params, antialiased=antialiased, spz_version=args.spz_version, color_space=color_space)
     size, before = os.path.getsize(out), os.path.getsize(src)
     report = {"output": str(out), "gaussians": int(len(params["means"])), "bytes": size,
