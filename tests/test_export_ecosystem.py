@@ -28,7 +28,7 @@ import pytest
 from mi_gaussians.model import frames
 from mi_gaussians.model.ply import read_ply, write_ply
 from mi_gaussians.model.web_formats import read_model_info, write_model
-from test_gltf_export import assert_same_shapes, attribute, expected_scene, pack_glb, parse_glb, scene_of_two
+from test_gltf_export import assert_same_shapes, expected_scene, pack_glb, parse_glb, scene_of_two
 
 ROOT = Path(__file__).resolve().parents[1]
 JS = ROOT / "tests" / "js"

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mi_gaussians.conventions import SH_C0
+from mi_gaussians.conventions import SH_C0, sh_degree_from_coeff_count
 from mi_gaussians.model import frames, gltf
 
 F = np.diag(gltf.LUF_FROM_RDF)
@@ -48,7 +48,7 @@ def assert_same_shapes(a, b, rel: float) -> None:
 
 def _colours(p, dirs) -> np.ndarray:
     """(N, 3) SH colour of each Gaussian along its own direction ``dirs[i]`` (before the +0.5 and the clamp)."""
-    degree = frames.sh_degree_from_coeff_count(p["sh_rest"].shape[1] + 1)
+    degree = sh_degree_from_coeff_count(p["sh_rest"].shape[1] + 1)
     b = frames.sh_basis(dirs, degree)
     coeffs = np.concatenate([np.asarray(p["sh_dc"], np.float64)[:, None], np.asarray(p["sh_rest"], np.float64)], 1)
     return np.einsum("nk,nkc->nc", b, coeffs)
@@ -252,7 +252,7 @@ def splat_primitive(b: Builder, p: dict, quantized: bool = False) -> dict:
         attrs["KHR_gaussian_splatting:SCALE"] = b.accessor(scale)
         attrs["KHR_gaussian_splatting:OPACITY"] = b.accessor(opacity)
         attrs["KHR_gaussian_splatting:SH_DEGREE_0_COEF_0"] = b.accessor(p["sh_dc"])
-    for l in range(1, frames.sh_degree_from_coeff_count(p["sh_rest"].shape[1] + 1) + 1):
+    for l in range(1, sh_degree_from_coeff_count(p["sh_rest"].shape[1] + 1) + 1):
         for m in range(2 * l + 1):
             attrs[f"KHR_gaussian_splatting:SH_DEGREE_{l}_COEF_{m}"] = b.accessor(p["sh_rest"][:, l * l - 1 + m])
     pos = np.asarray(p["means"])

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..conventions import sh_coeff_count, sh_degree_from_coeff_count
+from ..conventions import sh_degree_from_coeff_count
 
 #: Per higher-band SH basis function (degree 1, 2, 3 in the reference's order), whether it is odd in x, y and z.
 #: Every basis function of the reference's real SH has a definite parity in each axis (y, z, x; xy, yz, 2z^2-x^2-y^2,
@@ -168,7 +168,3 @@ def transform(p: dict, m: np.ndarray, t=(0.0, 0.0, 0.0)) -> dict:
         sh_rest = rotate_sh(sh_rest, rot)
     return {**p, "means": means.astype(np.float32), "rotations": q.astype(np.float32),
             "scales": scales.astype(np.float32), "sh_rest": sh_rest.astype(np.float32)}
-
-
-def empty_sh_rest(n: int, degree: int) -> np.ndarray:
-    return np.zeros((n, sh_coeff_count(degree) - 1, 3), np.float32)
