@@ -426,6 +426,8 @@ def test_cli_export_records_the_colour_space(tmp_path):
     assert export(run_dir / "point_cloud.ply", "a.glb") == ("srgb", "")
     assert export(run_dir / "point_cloud.ply", "lin.gltf", "--color-space", "linear")[0] == "linear"
     assert export(tmp_path / "lin.gltf", "b.glb") == ("linear", "")              # (the input's own tag)
+    r = run("export", tmp_path / "lin.gltf", "-o", tmp_path / "lin.spz")
+    assert r.returncode == 0 and "cannot record that the colours of" in r.stderr and "--color-space linear" in r.stderr
     (run_dir / "config.json").write_text('{"dataset": 3}')                      # (one warning for the record)
     space, err = export(run_dir / "point_cloud.ply", "c.glb")
     assert space == "srgb" and err.startswith("mi-gs: warning: rendering with the default settings: ") and \

@@ -93,6 +93,9 @@ def run(args) -> int:
         print(f"mi-gs: note: {out.suffix} cannot record that {src} renders anti-aliased: render it with "
               "--antialiased", file=sys.stderr)
     color_space = args.color_space or (_color_space(src, meta, bool(warned)) if kind in (".glb", ".gltf") else "srgb")
+    if meta.get("color_space") == "linear" and kind not in (".glb", ".gltf"):
+        print(f"mi-gs: note: {out.suffix} cannot record that the colours of {src} are linear: render it with "
+              "--color-space linear", file=sys.stderr)
     write_model(out, params, antialiased=antialiased, spz_version=args.spz_version, color_space=color_space)
     size, before = os.path.getsize(out), os.path.getsize(src)
     report = {"output": str(out), "gaussians": int(len(params["means"])), "bytes": size,
