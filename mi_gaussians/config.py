@@ -41,6 +41,9 @@ POSE_PIVOTS = ("centre", "depth")
 #: ``OptimConfig.ssim_padding``: 'same', the reference's SSIM (zero padding, the mean over every pixel); 'valid',
 #: gsplat's trainer (``fused_ssim(padding="valid")``: the mean over the pixels whose window lies inside the image).
 SSIM_PADDINGS = ("same", "valid")
+#: ``RasterConfig.footprint``: the tiles a Gaussian is blended in (raster/footprint.py): 'ellipse', those its
+#: alpha >= alpha_min ellipse reaches; 'box', every tile of that ellipse's bounding box. Same image and gradients.
+FOOTPRINTS = ("ellipse", "box")
 #: ``--depth-weight W`` decays from W to W / DEPTH_WEIGHT_DECAY (the 2024 reference's 1.0 to 0.01).
 DEPTH_WEIGHT_DECAY = 100.0
 
@@ -106,6 +109,10 @@ class RasterConfig:
     transmittance_min: float = 1e-4          # stop before a Gaussian that would bring T below this
     antialiased: bool = False                # Mip-Splatting's 2D filter (gsplat's "antialiased" mode, the 2024
                                              # reference's --antialiasing): opacity times sqrt(det(S) / det(S + 0.3 I))
+    footprint: str = "ellipse"               # FOOTPRINTS: blend a Gaussian only in the tiles its alpha >= alpha_min
+                                             # ellipse reaches ('ellipse'), or in every tile of the ellipse's bounding
+                                             # box ('box'; the reference: a 3-sigma square); the same image and
+                                             # gradients, less work
 
 
 @dataclass(frozen=True)
@@ -392,7 +399,7 @@ RULES: dict[str, "Range | tuple[str, ...]"] = {
     "densify.densification_interval": _COUNT, "densify.split_count": _COUNT,
     "densify.split_scale_divisor": _POSITIVE, "densify.min_opacity": Range(0, 1, open_high=True),
     "densify.reset_opacity": _OPEN_FRACTION,
-    "raster.near_plane": _POSITIVE, "raster.guard_band": _POSITIVE, "raster.alpha_min": Range(0, 1, open_high=True),
+    "raster.footprint": FOOTPRINTS, "raster.near_plane": _POSITIVE, "raster.guard_band": _POSITIVE, "raster.alpha_min": Range(0, 1, open_high=True),
     "raster.alpha_max": Range(0, 1, open_low=True), "raster.transmittance_min": Range(0, 1, open_high=True),
     "mcmc.cap_max": _COUNT, "mcmc.refine_every": _COUNT, "mcmc.min_opacity": Range(0, 1, open_high=True),
     "mcmc.init_opacity": _OPEN_FRACTION, "mcmc.init_scale": _POSITIVE,

@@ -210,7 +210,8 @@ def _tile_heat_map(g, cam: Camera, sh_degree, raster: RasterConfig) -> np.ndarra
     if g.n:
         view = ViewParams.from_camera(cam)
         proj = project(GaussianArrays.from_gaussians(g, g.sh_degree if sh_degree is None else sh_degree), view, raster)
-        bins = bin_gaussians(proj.depth, proj.rect, proj.tile_count, tx, ty)
+        bins = bin_gaussians(proj.depth, proj.rect, proj.tile_count, tx, ty, ellipse=proj.ellipse,
+                             image_size=(view.width_f, view.height_f))
         counts = np.diff(np.array(bins.tile_start, np.int64)).astype(np.float64)
     tiles = np.log1p(counts.reshape(ty, tx)) / max(np.log1p(counts.max()), 1e-12)
     img = _turbo(np.repeat(np.repeat(tiles, TILE, axis=0), TILE, axis=1)[:H, :W])

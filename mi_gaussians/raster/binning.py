@@ -20,9 +20,13 @@ caller checks ``fits`` (the frozen trainer masks the step and retries it with a 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import drjit as dr
 import mitsuba as mi
+
+if TYPE_CHECKING:       # (footprint needs blend's tile size, and blend these bins)
+    from .footprint import Ellipse
 
 
 @dataclass
@@ -35,6 +39,8 @@ class Bins:
     tiles_x: int
     tiles_y: int
     fits: object = True       # with a capacity: mi.Bool (width 1), total <= capacity
+    n_blended: object = None  # instances in the tiles' ranges (a device mi.UInt32, width 1): n_instances less those
+                              # of the sentinel bucket (past the capacity, or tiles the footprint's ellipse misses)
 
     @property
     def n_tiles(self) -> int:
@@ -129,8 +135,11 @@ def stable_argsort(keys: "mi.Float", pad: bool | None = None) -> "mi.UInt32":
 
 
 def bin_gaussians(depth: "mi.Float", rect: tuple, tile_count: "mi.UInt32", tiles_x: int, tiles_y: int,
-                  capacity: int | None = None) -> Bins:
-    """Bin Gaussians (detached inputs) into ``tiles_x * tiles_y`` tiles; ``capacity``: see the module docstring."""
+                  capacity: int | None = None, ellipse: "Ellipse | None" = None, image_size=None) -> Bins:
+    """Bin Gaussians (detached inputs) into ``tiles_x * tiles_y`` tiles; ``capacity``: see the module docstring.
+    ``ellipse`` (with ``image_size``, the image's (width, height) as ``mi.Float`` values): each instance of a rectangle
+    whose tile the Gaussian's ellipse misses goes to the sentinel bucket (:mod:`.footprint`), so it is sorted but
+    never blended; ``Bins.n_blended`` counts the others."""
     n_tiles = tiles_x * tiles_y
     depth, tile_count = dr.detach(depth), dr.detach(tile_count)
     n = dr.width(tile_count)
@@ -171,10 +180,13 @@ def bin_gaussians(depth: "mi.Float", rect: tuple, tile_count: "mi.UInt32", tiles
     rw = dr.gather(mi.Int32, tx1, gidx) - rx0 + 1
     # local // rw in float64: exact for these magnitudes, and free of the scalarized (and SIGFPE-prone) int division
     q = mi.Int32(dr.floor((mi.Float64(local) + 0.5) / mi.Float64(rw)))
-    tile = mi.UInt32((ry0 + q) * tiles_x + rx0 + (mi.Int32(local) - q * rw))
+    tx, ty = rx0 + (mi.Int32(local) - q * rw), ry0 + q
+    tile = mi.UInt32(ty * tiles_x + tx)
 
     buckets = n_tiles
-    if capacity is not None:
+    if ellipse is not None:
+        valid = valid & ellipse.touches(gidx, tx, ty, *image_size)
+    if capacity is not None or ellipse is not None:
         tile = dr.select(valid, tile, n_tiles)       # the sentinel bucket, after every tile
         buckets = n_tiles + 1
 
@@ -187,4 +199,4 @@ def bin_gaussians(depth: "mi.Float", rect: tuple, tile_count: "mi.UInt32", tiles
     tile_start = dr.cumsum(hist)                     # inclusive scan of the shifted histogram = [0, starts..., total]
     dr.eval(gaussian, tile_start)
     return Bins(gaussian=gaussian, tile_start=tile_start, n_instances=total, tiles_x=tiles_x, tiles_y=tiles_y,
-                fits=fits)
+                fits=fits, n_blended=dr.gather(mi.UInt32, tile_start, mi.UInt32(n_tiles)))

@@ -15,10 +15,11 @@ by ``sqrt(det(S) / det(S + dilation I))`` with ``S`` the undilated 2D covariance
 pixel keeps its energy instead of growing into a 0.3-pixel blob of full opacity. Everything downstream (footprint,
 blending) sees the scaled opacity.
 
-Footprint: a Gaussian of opacity ``o`` reaches alpha >= 1/255 exactly where ``d^T conic d <= 2 ln(255 o)``; the
-axis-aligned box of that ellipse is ``|dx| <= sqrt(2 ln(255 o) * Sigma_xx)`` and ``|dy| <= sqrt(2 ln(255 o) * Sigma_yy)``.
-Covering that box (with a tiny safety margin) makes the image independent of the tile grid, unlike the reference's
-3-sigma circle, and is tighter for faint and for elongated Gaussians. ``radii`` keeps the reference definition
+Footprint: a Gaussian of opacity ``o`` reaches alpha >= alpha_min exactly where ``d^T conic d <= 2 ln(o / alpha_min)``;
+the axis-aligned box of that ellipse is ``|dx| <= sqrt(2 ln(o / alpha_min) * Sigma_xx)`` and likewise in y. Covering
+that box (with a tiny safety margin) makes the image independent of the tile grid, unlike the reference's 3-sigma
+circle, and is tighter for faint and for elongated Gaussians; with ``RasterConfig.footprint = "ellipse"`` binning
+then keeps only the box's tiles the ellipse reaches (:mod:`.footprint`). ``radii`` keeps the reference definition
 ``ceil(3 sqrt(lambda_max))``: densification counts a Gaussian as seen where it is > 0, and its optional screen-size
 prune compares it with the image size.
 """
@@ -36,11 +37,7 @@ from ..data.camera import Camera
 from ..drjit_utils import fclamp, fmax, fmin, quaternion_to_matrix, sigmoid
 from ..model.gaussians import Gaussians
 from ..model.sh import eval_sh_colors, gather_sh_coeffs
-from .blend import TILE
-
-# Relative and absolute (pixels) slack added to the footprint box against float rounding; it only adds work.
-_FOOTPRINT_REL_MARGIN = 1e-3
-_FOOTPRINT_ABS_MARGIN = 1e-2
+from .footprint import Ellipse, box
 
 
 @dataclass(frozen=True)
@@ -85,8 +82,9 @@ class Projected:
     color: "mi.Color3f"       # max(SH(dir) + 0.5, 0)
     depth: "mi.Float"         # camera-space z
     rect: tuple               # (tx0, ty0, tx1, ty1) tile rectangle, inclusive, mi.Int32 (detached)
-    tile_count: "mi.UInt32"   # number of tiles overlapped (0 when culled)
+    tile_count: "mi.UInt32"   # number of tiles of the rectangle (0 when culled)
     radii: "mi.Int32"         # reference radius ceil(3 sqrt(lambda_max)) in pixels, 0 when culled
+    ellipse: Ellipse | None = None   # footprint 'ellipse': the test of the rectangle's tiles it reaches (binning)
 
 
 @dataclass
@@ -176,30 +174,14 @@ def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig) -> Projecte
     # ---- footprint, culling, tile rectangle (no gradients needed)
     with dr.suspend_grad():
         o = dr.detach(opacity)
-        a, c, dt = dr.detach(cov_a), dr.detach(cov_c), dr.detach(det)
-        m = dr.detach(mean2d)
-        k2 = 2.0 * dr.log(255.0 * o)
+        a, b, c, dt = dr.detach(cov_a), dr.detach(cov_b), dr.detach(cov_c), dr.detach(det)
+        k2 = 2.0 * dr.log(o * (1.0 / cfg.alpha_min))
         valid = in_front & (dt > 0) & (k2 >= 0)
-        ex = dr.sqrt(fmax(k2 * a, 0.0)) * (1 + _FOOTPRINT_REL_MARGIN) + _FOOTPRINT_ABS_MARGIN
-        ey = dr.sqrt(fmax(k2 * c, 0.0)) * (1 + _FOOTPRINT_REL_MARGIN) + _FOOTPRINT_ABS_MARGIN
-        valid &= dr.isfinite(ex) & dr.isfinite(ey) & dr.isfinite(m.x) & dr.isfinite(m.y)
-        # pixels i whose centre i + 0.5 lies within [m - e, m + e]
-        w_f, h_f = view.width_f, view.height_f
-        i0 = dr.ceil(m.x - ex - 0.5)
-        i1 = dr.floor(m.x + ex - 0.5)
-        j0 = dr.ceil(m.y - ey - 0.5)
-        j1 = dr.floor(m.y + ey - 0.5)
-        valid &= (i1 >= 0) & (i0 <= w_f - 1) & (j1 >= 0) & (j0 <= h_f - 1) & (i0 <= i1) & (j0 <= j1)
-        ts = float(TILE)
-        tx0 = mi.Int32(dr.floor(fmax(i0, 0.0) / ts))
-        tx1 = mi.Int32(dr.floor(fmin(i1, w_f - 1) / ts))
-        ty0 = mi.Int32(dr.floor(fmax(j0, 0.0) / ts))
-        ty1 = mi.Int32(dr.floor(fmin(j1, h_f - 1) / ts))
-        count = mi.UInt32((tx1 - tx0 + 1) * (ty1 - ty0 + 1))
-        count = dr.select(valid, count, 0)
+        rect, count, valid, ellipse = box(dr.detach(mean2d), a, b, c, dt, k2, valid, view.width_f, view.height_f,
+                                          ellipse=cfg.footprint == "ellipse")
         mid = 0.5 * (a + c)
         lam = mid + dr.sqrt(fmax(mid * mid - dt, 0.1))
         radii = dr.select(valid, mi.Int32(dr.ceil(3.0 * dr.sqrt(lam))), 0)
 
     return Projected(mean2d=mean2d, conic=conic, opacity=opacity, color=color, depth=tz,
-                     rect=(tx0, ty0, tx1, ty1), tile_count=count, radii=radii)
+                     rect=rect, tile_count=count, radii=radii, ellipse=ellipse)

@@ -35,8 +35,11 @@ class RenderOutput:
     alpha: "mi.TensorXf"
     depth: "mi.TensorXf"
     radii: "mi.Int32"
-    n_instances: object       # (Gaussian, tile) pairs blended: int; with a capacity, a device mi.UInt32 (width 1)
+    n_instances: object       # (Gaussian, tile) pairs of the footprints' rectangles, the instance list's length:
+                              # int; with a capacity, a device mi.UInt32 (width 1)
     fits: object = True       # with a capacity: mi.Bool (width 1), the instances fitted (else do not use the image)
+    n_blended: object = 0     # the pairs blended (a device mi.UInt32, width 1; raster.footprint 'ellipse' leaves out
+                              # the rectangles' tiles a Gaussian does not reach)
     _stats: BlendStats = field(repr=False, default=None)
 
     @property
@@ -92,7 +95,8 @@ def render_arrays(ga: GaussianArrays | None, camera: Camera | ViewParams, backgr
 
     if ga is not None and dr.width(ga.opacity) > 0:
         proj = project(ga, view, cfg)
-        bins = bin_gaussians(proj.depth, proj.rect, proj.tile_count, tiles_x, tiles_y, capacity)
+        bins = bin_gaussians(proj.depth, proj.rect, proj.tile_count, tiles_x, tiles_y, capacity, proj.ellipse,
+                             (view.width_f, view.height_f))
         radii = proj.radii
     else:
         proj = None
@@ -115,4 +119,5 @@ def render_arrays(ga: GaussianArrays | None, camera: Camera | ViewParams, backgr
     depth = dr.select(alpha > 1e-12, dsum / fmax(alpha, 1e-12), 0.0)
     rgb = mi.TensorXf(dr.ravel(mi.Color3f(r, gch, b)), (H, W, 3))
     return RenderOutput(rgb=rgb, alpha=mi.TensorXf(alpha, (H, W)), depth=mi.TensorXf(depth, (H, W)),
-                        radii=radii, n_instances=bins.n_instances, fits=bins.fits, _stats=stats)
+                        radii=radii, n_instances=bins.n_instances, fits=bins.fits,
+                        n_blended=bins.n_blended if bins.n_blended is not None else 0, _stats=stats)
