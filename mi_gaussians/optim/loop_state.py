@@ -17,6 +17,8 @@ class History:
     loss: list = field(default_factory=list)
     gaussians: list = field(default_factory=list)
     seconds: list = field(default_factory=list)     # training time (evaluation excluded) after each iteration
+    instances: list = field(default_factory=list)   # (Gaussian, tile) pairs blended by each iteration (the work of
+                                                    # its blend; absent from the checkpoints of earlier versions)
     eval_iteration: list = field(default_factory=list)
     test_psnr: list = field(default_factory=list)
 

@@ -173,7 +173,8 @@ class TrainStep:
     """A training iteration without host synchronization: render, loss, backward, statistics, masked Adam step.
 
     ``step(params, state, inputs, valid, sh_degree, update_state, capacity, exposure, pose)`` returns device values
-    ``(loss, ok, instances)`` (1 element each) and changes ``params`` and ``state`` in place. ``valid`` is the
+    ``(loss, ok, instances, blended)`` (1 element each: the instance list's length, which the capacity must hold, and
+    the (Gaussian, tile) pairs blended) and changes ``params`` and ``state`` in place. ``valid`` is the
     ``ok`` of the previous step (``mi.Bool(True)`` after a synchronization). ``freeze=False`` runs the same code
     traced every time (a reference for tests)."""
 
@@ -206,7 +207,7 @@ class TrainStep:
             if pose is not None:
                 pose.set_learning_rate(inputs.pose_lr)
                 pose.step(inputs.view_index, active=ok)
-            return loss, ok, mi.UInt32(out.n_instances)
+            return loss, ok, mi.UInt32(out.n_instances), mi.UInt32(out.n_blended)
 
         # recordings are made when the model's size changes (densification), so many over a run: no warning
         self._step = dr.freeze(step, limit=4, warn_after=1 << 30) if freeze else step

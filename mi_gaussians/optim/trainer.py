@@ -86,6 +86,7 @@ class _Pending:
     loss: "mi.Float"
     ok: "mi.Bool"
     instances: "mi.UInt32"
+    blended: "mi.UInt32"
 
 
 class Trainer:
@@ -243,10 +244,10 @@ class Trainer:
         bg = tuple(self.bg_rng.random(3)) if self.cfg.optim.random_background else self.background
         return idx, bg
 
-    def _iteration(self, step: int) -> tuple[float, int]:
+    def _iteration(self, step: int) -> tuple[float, int, int]:
         """One traced iteration (synchronizes: reads the loss and the instance count back). On a refinement iteration
         it gathers the statistics and leaves the refinement pending (:meth:`_refine`, at the start of the next
-        iteration). Returns (loss, tile instances)."""
+        iteration). Returns (loss, tile instances, instances blended)."""
         cfg = self.cfg
         o = cfg.optim
         self.trim()
@@ -288,7 +289,7 @@ class Trainer:
             self.poses.step(idx)
         if refines:
             self._refine_at = step
-        return value, int(out.n_instances)
+        return value, int(out.n_instances), int(out.n_blended[0]) if dr.is_array_v(out.n_blended) else 0
 
     def _refine(self) -> None:
         """The strategy's refinement of iteration ``self._refine_at`` (densification, pruning, opacity reset), after
@@ -356,11 +357,11 @@ class Trainer:
         if self._valid is None:
             self._valid = dr.opaque(mi.Bool, True)
         self._pad()
-        loss, ok, instances = self.train_step(self.params, self.strategy_state, inputs, self._valid, degree,
+        loss, ok, instances, blended = self.train_step(self.params, self.strategy_state, inputs, self._valid, degree,
                                               self.strategy.updates_state_at(step), self.capacity, self.exposure,
                                               self.poses)
         self._valid = ok
-        self._pending.append(_Pending(step, idx, host, loss, ok, instances))
+        self._pending.append(_Pending(step, idx, host, loss, ok, instances, blended))
         self.step = step
 
     def _resolve(self) -> bool:
@@ -387,15 +388,16 @@ class Trainer:
                     return False
                 raise self._diverged(loss, p.step, p.view)
             self._peak = max(self._peak, instances)
-            self._commit(p.step, loss)
+            self._commit(p.step, loss, int(p.blended[0]))
         return True
 
-    def _commit(self, step: int, loss: float) -> None:
-        """Record a finished iteration (history, progress bar)."""
+    def _commit(self, step: int, loss: float, blended: int) -> None:
+        """Record a finished iteration (history, progress bar); ``blended``: its (Gaussian, tile) pairs blended."""
         self._ema = loss if self._ema is None else 0.4 * loss + 0.6 * self._ema
         self.history.iteration.append(step)
         self.history.loss.append(loss)
         self.history.gaussians.append(self.n_gaussians)
+        self.history.instances.append(blended)
         self.history.seconds.append(round(self.elapsed + time.perf_counter() - self._t0, 4))
         if self._bar is not None:
             self._bar.update(1)
@@ -441,10 +443,10 @@ class Trainer:
             if not self._resolve():
                 return
             with self.loop.timed("traced"):
-                loss, instances = self._iteration(step)
+                loss, instances, blended = self._iteration(step)
             self.loop.traced += 1
             self.step = step
-            self._commit(step, loss)
+            self._commit(step, loss, blended)
             if self.cfg.freeze:
                 self._set_capacity_after_traced(instances)
         else:
