@@ -102,6 +102,35 @@ def test_gradients_match_finite_differences_special(name):
     assert _check_fd(params, cam, subset, random_weights(cam, seed=5)) > 10
 
 
+def test_a_loss_of_the_alpha_alone_has_the_reference_gradients():
+    """With no colour or depth gradient reaching the blend (a mask loss alone: the backward's incoming colour
+    gradients are literal zeros), the gradients still match float64 finite differences of the reference."""
+    params, cam = sf.random_scene(seed=21, n=10, sh_degree=0, width=24, height=20)
+    w = random_weights(cam, seed=3)
+    weights = {"rgb": np.zeros_like(w["rgb"]), "alpha": w["alpha"], "depth": np.zeros_like(w["depth"])}
+    g = mig.Gaussians.from_numpy(**params)
+    for k in NAMES:
+        dr.enable_grad(getattr(g, k))
+    out = mig.render(g, cam, background=BACKGROUND)
+    import mitsuba as mi
+
+    dr.backward(dr.sum(out.alpha.array * mi.Float(weights["alpha"].astype(np.float32).ravel())))
+    ours = {k: np.array(dr.grad(getattr(g, k)), dtype=np.float64).reshape(params[k].shape) for k in NAMES
+            if params[k].size}
+    fd, unreliable = fd_gradients(params, cam, weights, background=BACKGROUND, eps=1e-5, return_unreliable=True)
+    checked = 0
+    for k in ("means", "scales", "rotations", "opacities"):
+        sel = ~unreliable[k]
+        a, b = ours[k][sel], fd[k][sel]
+        scale = max(np.abs(b).max(), 1e-3)
+        significant = np.abs(b) > 1e-2 * scale
+        assert np.all(np.abs(a - b)[significant] < 1e-3 * np.abs(b)[significant]), k
+        assert np.all(np.abs(a - b)[~significant] < 1e-3 * scale), k
+        checked += significant.sum()
+    assert checked > 30
+    assert np.all(ours["sh_dc"] == 0)                    # (the colour does not change the alpha)
+
+
 # ------------------------------------------------------------------------------------------------ anti-aliased mode
 @pytest.mark.parametrize("name", sorted(sf.SCENES))
 def test_antialiased_forward_matches_reference(name):

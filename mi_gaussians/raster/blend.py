@@ -344,9 +344,13 @@ class BlendOp(dr.CustomOp):
     def backward(self):
         n = self.n
         absgrad = self.stats.absgrad_requested
+        g_img = [mi.Float(x) for x in self.grad_out()]
+        if all(g.state == dr.VarState.Literal for g in g_img[:4]):
+            # No colour or depth gradient (a loss of the alpha alone): the loop's accumulated weights would stay a
+            # literal zero, which Dr.Jit's loop recording rejects as a state variable that changes on re-recording.
+            g_img[0] = dr.opaque(mi.Float, 0.0, self.frame.width * self.frame.height)
         ggeo, gcol, self.stats.backward_evaluations = blend_backward(
-            self.geo, self.col, self.bins, self.frame, self.cfg, self.T_lane, self.last_lane,
-            [mi.Float(x) for x in self.grad_out()], n, absgrad)
+            self.geo, self.col, self.bins, self.frame, self.cfg, self.T_lane, self.last_lane, g_img, n, absgrad)
         idx = dr.arange(mi.UInt32, n)
         gg = [dr.gather(mi.Float, ggeo, idx * GEO + k) for k in range(7)]
         gc = [dr.gather(mi.Float, gcol, idx * COL + k) for k in range(3)]
