@@ -137,6 +137,9 @@ class OptimConfig:
     sh_degree: int = 3                       # maximum SH degree
     sh_increase_interval: int = 1000         # the active degree goes up by one every this many iterations
     random_background: bool = False          # a random background colour per iteration
+    alpha_weight: float = 0.0                # images with alpha (an object on an empty background): loss +=
+                                             # alpha_weight * L1(rendered alpha, the image's alpha), so that a
+                                             # Gaussian of the background's colour in empty space is not free
     step_on_refine: bool = False             # also take the Adam step on the iterations that densify or reset
                                              # opacities, before the refinement (gsplat's order); false: the
                                              # reference's, whose rebuilt parameters have no gradient there

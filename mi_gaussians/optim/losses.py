@@ -73,3 +73,10 @@ def depth_loss(depth: "mi.TensorXf", alpha: "mi.TensorXf", inv_target: "mi.Tenso
     valid = (r > 0.0) & (dr.detach(alpha.array) > 0.5) & (dr.detach(d) > 0.0)
     inv = dr.rcp(dr.select(valid, d, 1.0))
     return dr.mean(dr.select(valid, dr.abs(inv - r), 0.0))
+
+
+def alpha_loss(alpha: "mi.TensorXf", transparency: "mi.TensorXf") -> "mi.Float":
+    """Mean absolute difference of a render's alpha ((H, W), ``out.alpha``) from a target's alpha given as its
+    transparency ((H, W, 1), 1 - alpha) -> Float (1,)."""
+    h, w = int(alpha.shape[0]), int(alpha.shape[1])
+    return l1(mi.TensorXf(alpha.array, (h, w, 1)), 1.0 - transparency)

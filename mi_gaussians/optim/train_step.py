@@ -47,7 +47,7 @@ from ..config import RasterConfig
 from ..raster.projection import ViewParams
 from ..raster.rasterize import render
 from .adam import GaussianAdam
-from .losses import depth_loss, photometric_loss
+from .losses import alpha_loss, depth_loss, photometric_loss
 from .strategy import Strategy
 
 # Instance capacities are taken from this geometric ladder (steps of 2^(1/4), about 19 %), so that the capacity
@@ -128,7 +128,8 @@ class StepInputs:
     """The per-iteration Dr.Jit values of a training step (a PyTree: a frozen step takes it as an input)."""
 
     target: "mi.TensorXf"                 # (H, W, 3) image over ``fixed_background``
-    transparency: "mi.TensorXf | None"    # (H, W, 1) 1 - alpha, for re-compositing over a random background
+    transparency: "mi.TensorXf | None"    # (H, W, 1) 1 - alpha, for re-compositing over a random background and
+                                          # the alpha loss
     view: ViewParams
     background: tuple                     # (r, g, b) 1-element mi.Float each
     means_lr: "mi.Float"                  # the position learning rate of this iteration (1 element)
@@ -153,12 +154,14 @@ def composite_target(target, transparency, background, fixed_background) -> "mi.
 
 
 def training_loss(out, target, lambda_dssim, strategy: Strategy, params: GaussianAdam, depth_target=None,
-                  depth_weight=None, exposure=None, view_index=None, ssim_padding: str = "same") -> "mi.Float":
+                  depth_weight=None, exposure=None, view_index=None, ssim_padding: str = "same",
+                  transparency=None, alpha_weight: float = 0.0) -> "mi.Float":
     """The loss an iteration minimizes, the one home of its assembly for the frozen step and the traced loop: the
     photometric (L1 + D-SSIM) loss of render ``out`` (through training view ``view_index``'s colour compensation
     when ``exposure`` is given: :func:`.compensation.make_compensation`) against ``target``, the strategy's and the
     compensation's regularizers, and the depth loss weighted by ``depth_weight`` where a ``depth_target`` is
-    given; ``ssim_padding``: one of :data:`mi_gaussians.config.SSIM_PADDINGS`."""
+    given; ``ssim_padding``: one of :data:`mi_gaussians.config.SSIM_PADDINGS`; with ``alpha_weight`` > 0 and the
+    target's ``transparency`` (1 - its alpha, (H, W, 1)), the L1 distance of the rendered alpha from the target's."""
     image = out.rgb if exposure is None else exposure.apply(out.rgb, view_index)
     loss = photometric_loss(image, target, lambda_dssim, ssim_padding)
     for reg in (strategy.regularization(params), None if exposure is None else exposure.regularization(view_index)):
@@ -166,6 +169,8 @@ def training_loss(out, target, lambda_dssim, strategy: Strategy, params: Gaussia
             loss = loss + reg
     if depth_target is not None:
         loss = loss + depth_weight * depth_loss(out.depth, out.alpha, depth_target)
+    if alpha_weight > 0 and transparency is not None:
+        loss = loss + float(alpha_weight) * alpha_loss(out.alpha, transparency)
     return loss
 
 
@@ -179,7 +184,8 @@ class TrainStep:
     traced every time (a reference for tests)."""
 
     def __init__(self, strategy: Strategy, raster: RasterConfig, lambda_dssim: float, fixed_background,
-                 freeze: bool = True, ssim_padding: str = "same"):
+                 freeze: bool = True, ssim_padding: str = "same", random_background: bool = False,
+                 alpha_weight: float = 0.0):
         fixed = tuple(float(b) for b in fixed_background)
         lam = float(lambda_dssim)
 
@@ -191,9 +197,10 @@ class TrainStep:
             out = render(params.gaussians, view, background=inputs.background, sh_degree=sh_degree,
                          cfg=raster, capacity=capacity)
             strategy.step_pre_backward(params, state, None, out, collect=update_state)
-            target = composite_target(inputs.target, inputs.transparency, inputs.background, fixed)
+            target = composite_target(inputs.target, inputs.transparency if random_background else None,
+                                      inputs.background, fixed)
             loss = training_loss(out, target, lam, strategy, params, inputs.depth_target, inputs.depth_weight,
-                                 exposure, inputs.view_index, ssim_padding)
+                                 exposure, inputs.view_index, ssim_padding, inputs.transparency, alpha_weight)
             dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
             ok = valid & out.fits & dr.isfinite(loss)
             if update_state:

@@ -126,9 +126,13 @@ class Trainer:
                 raise ValueError(f"{ds.root}: depth supervision (--depth-weight) needs the exact depth of a Mitsuba "
                                  "scene (.xml); this dataset has none")
             self.depth_targets = [owned_tensor(inverse_depth_target(d)) for d in depths]
+        # 1 - alpha of each training image: to re-composite it over a random background, and for the alpha loss
+        # (only where an image has alpha: on opaque images it would ask for nothing but full coverage)
         self.transparency = None
-        if cfg.optim.random_background:
-            self.transparency = [owned_tensor(1.0 - v.load_alpha()[..., None]) for v in ds.train]
+        if cfg.optim.random_background or cfg.optim.alpha_weight > 0:
+            alphas = [v.load_alpha() for v in ds.train]
+            if cfg.optim.random_background or any(float(np.min(a, initial=1.0)) < 1.0 for a in alphas):
+                self.transparency = [owned_tensor(1.0 - a[..., None]) for a in alphas]
         self.strategy = make_strategy(cfg, self.extent, white_background=self.background == (1.0, 1.0, 1.0))
         self.params = GaussianAdam(initial_gaussians(ds, cfg.optim.sh_degree, self.strategy, seed=cfg.seed + 3),
                                    cfg.optim, self.extent)
@@ -144,7 +148,9 @@ class Trainer:
             self.poses = PoseDeltas(len(ds.train), cfg.optim, float(ds.extent), pivots)
         # the frozen training step (see train_step.py) and the state of the loop around it
         self.train_step = TrainStep(self.strategy, cfg.raster, cfg.optim.lambda_dssim, self.background,
-                                    freeze=cfg.freeze, ssim_padding=cfg.optim.ssim_padding)
+                                    freeze=cfg.freeze, ssim_padding=cfg.optim.ssim_padding,
+                                    random_background=cfg.optim.random_background,
+                                    alpha_weight=cfg.optim.alpha_weight)
         self.capacity: int | None = None   # tile-instance capacity of frozen steps (set by the first traced one)
         self._needed = 0                   # the instances it was made for
         self._refine_at: int | None = None  # an iteration whose refinement is still to run (see _refine)
@@ -234,7 +240,8 @@ class Trainer:
 
     def target(self, idx: int, bg) -> "mi.TensorXf":
         """Training view ``idx``'s image over background ``bg`` (only RGBA images change with the background)."""
-        transparency = None if self.transparency is None else self.transparency[idx]
+        transparency = None if self.transparency is None or not self.cfg.optim.random_background \
+            else self.transparency[idx]
         return composite_target(self.targets[idx], transparency, bg, self.background)
 
     # ------------------------------------------------------------------ one iteration
@@ -264,7 +271,8 @@ class Trainer:
         loss = training_loss(out, self.target(idx, bg), o.lambda_dssim, self.strategy, self.params,
                              self.depth_targets[idx] if depth else None,
                              dr.opaque(mi.Float, depth_weight(step, o)) if depth else None, self.exposure,
-                             dr.opaque(mi.UInt32, idx), o.ssim_padding)
+                             dr.opaque(mi.UInt32, idx), o.ssim_padding,
+                             None if self.transparency is None else self.transparency[idx], o.alpha_weight)
         # (a view where nothing is visible gives a loss that does not depend on the parameters)
         dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
         value = float(loss[0])
