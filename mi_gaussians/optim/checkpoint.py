@@ -24,15 +24,32 @@ def write(path: Path, sections: dict[str, dict[str, np.ndarray]], meta: dict) ->
 
 
 def read(path: Path) -> tuple[dict[str, dict[str, np.ndarray]], dict]:
-    """(sections, meta); ValueError when the file is missing, unreadable or holds non-finite values."""
+    """(sections, meta); ValueError, one line naming the file, when it is missing, is no checkpoint (another file,
+    random bytes), lacks an array or a record the trainer reads (:data:`REQUIRED_META`, :func:`missing_arrays`), or holds
+    non-finite values."""
+    import zipfile
+
     if not path.exists():
         raise ValueError(f"{path}: no checkpoint to resume from")
+    cannot = "it cannot be resumed (start a new run: --overwrite)"
+    if path.is_file() and not zipfile.is_zipfile(path):       # (np.load would try it as a pickle, and say so)
+        raise ValueError(f"{path}: not a checkpoint of mi-gs (not a NumPy .npz archive: damaged, truncated or another "
+                         f"file); {cannot}")
     try:
-        with np.load(path) as z:
+        with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
-        meta = json.loads(bytes(data.pop("meta")).decode("utf-8"))
     except Exception as e:
-        raise ValueError(f"{path}: unreadable checkpoint ({e})") from None
+        raise ValueError(f"{path}: unreadable checkpoint ({' '.join(str(e).split()) or type(e).__name__}); "
+                         f"{cannot}") from None
+    if "meta" not in data:
+        raise ValueError(f"{path}: the checkpoint is incomplete: its record 'meta' is missing; {cannot}")
+    try:
+        meta = json.loads(bytes(data.pop("meta")).decode("utf-8"))
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"{path}: the checkpoint's record 'meta' is not JSON ({e}); {cannot}") from None
+    if not isinstance(meta, dict) or (absent := [k for k in REQUIRED_META if k not in meta]):
+        what = f"has no {absent[0]!r}" if isinstance(meta, dict) else "is not a JSON object"
+        raise ValueError(f"{path}: the checkpoint is incomplete: its record 'meta' {what}; {cannot}")
     sections: dict[str, dict[str, np.ndarray]] = {}
     for key, v in data.items():
         section, _, name = key.partition("/")
@@ -40,4 +57,33 @@ def read(path: Path) -> tuple[dict[str, dict[str, np.ndarray]], dict]:
             raise ValueError(f"{path}: the checkpoint holds non-finite values ({key}); it cannot be resumed "
                              "(start a new run: --overwrite)")
         sections.setdefault(section, {})[name] = v
+    if absent := missing_arrays(sections, meta):
+        more = f" (and {len(absent) - 1} more)" if len(absent) > 1 else ""
+        raise ValueError(f"{path}: the checkpoint is incomplete: the array {absent[0]!r} is missing{more}; {cannot}")
     return sections, meta
+
+
+#: the entries of a checkpoint's ``meta`` record that resuming reads
+REQUIRED_META = ("step", "elapsed", "history", "sampler", "bg_rng", "strategy")
+
+
+def missing_arrays(sections: dict[str, dict[str, np.ndarray]], meta: dict | None = None) -> list[str]:
+    """The arrays of the model and its Adam moments that ``sections`` lacks (``section/name``): every parameter of
+    :data:`~mi_gaussians.model.gaussians.PARAMETER_NAMES`, and its moments ``.t``, ``.m``, ``.v`` (``sh_rest``'s only
+    when the model has higher SH bands); and the values of the pose corrections and exposure transforms that the
+    settings recorded in ``meta`` (``config``) say the run learns."""
+    from ..model.gaussians import PARAMETER_NAMES
+
+    param, adam = sections.get("param", {}), sections.get("adam", {})
+    out = [f"param/{k}" for k in PARAMETER_NAMES if k not in param]
+    for k in PARAMETER_NAMES:
+        if k == "sh_rest" and (k not in param or param[k].ndim < 2 or param[k].shape[1] == 0):
+            continue
+        out += [f"adam/{k}.{m}" for m in ("t", "m", "v") if f"{k}.{m}" not in adam]
+    cfg = (meta or {}).get("config")
+    optim = cfg.get("optim") if isinstance(cfg, dict) else None
+    if isinstance(optim, dict):
+        learned = {"pose": optim.get("pose_opt") is True, "exposure": optim.get("exposure") in ("affine", "bilateral")}
+        out += [f"{section}/value" for section, on in learned.items()
+                if on and "value" not in sections.get(section, {})]
+    return out
