@@ -25,8 +25,8 @@ def write(path: Path, sections: dict[str, dict[str, np.ndarray]], meta: dict) ->
 
 def read(path: Path) -> tuple[dict[str, dict[str, np.ndarray]], dict]:
     """(sections, meta); ValueError, one line naming the file, when it is missing, is no checkpoint (another file,
-    random bytes), lacks an array or a record the trainer reads (:data:`REQUIRED_META`, :func:`missing_arrays`), or holds
-    non-finite values."""
+    random bytes), lacks an array or a record the trainer reads (:data:`REQUIRED_META`, :func:`missing_arrays`), or
+    holds non-finite values."""
     import zipfile
 
     if not path.exists():
