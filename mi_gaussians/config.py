@@ -397,7 +397,13 @@ RULES: dict[str, "Range | tuple[str, ...]"] = {
     "data.background": Range(0), "data.pose_noise": Range(0, counts=(2, 2)),
     "optim.iterations": _COUNT, "optim.position_lr_max_steps": _COUNT, "optim.sh_degree": Range(0, 3),
     "optim.sh_increase_interval": _COUNT, "optim.lambda_dssim": _FRACTION, "optim.adam_eps": _POSITIVE,
-    "optim.pose_opt_lr_decay": _POSITIVE, "optim.pose_opt_pivot": POSE_PIVOTS,
+    "optim.pose_opt_lr_decay": Range(0, 100, open_low=True), "optim.pose_opt_pivot": POSE_PIVOTS,
+    # Adam's rates: about the size of a step, in each group's own units (the position's in scene extents, a pose
+    # correction's in radians and extents); larger ones diverge or throw the quantity around at once
+    **{f"optim.{name}": Range(0, 1) for name in ("position_lr_init", "position_lr_final", "feature_lr", "opacity_lr",
+                                                 "scaling_lr", "rotation_lr", "exposure_lr_init", "exposure_lr_final",
+                                                 "exposure_grid_lr")},
+    "optim.pose_opt_lr": Range(0, 0.1),
     "optim.exposure": EXPOSURES, "optim.ssim_padding": SSIM_PADDINGS, "optim.exposure_grid": Range(2, counts=(3, 3)),
     "densify.densification_interval": _COUNT, "densify.split_count": _COUNT,
     "densify.split_scale_divisor": _POSITIVE, "densify.min_opacity": Range(0, 1, open_high=True),

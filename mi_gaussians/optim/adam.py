@@ -365,6 +365,10 @@ class GaussianAdam:
             raise RuntimeError(f"a row change left the parameters with different numbers of rows {sorted(n)}")
 
     # ------------------------------------------------------------------ checkpoints
+    def finite(self) -> dict[str, "mi.Bool"]:
+        """Per parameter, whether its values and Adam moments are all finite (1-element device flags)."""
+        return finite_state(self._adam, self.keys())
+
     def export_moments(self) -> dict[str, np.ndarray]:
         """The Adam state as NumPy arrays (for a checkpoint): ``<key>.t`` (uint32, shape (1,)), ``<key>.m`` and
         ``<key>.v`` (float32, the parameter's shape) and ``<key>.vmax`` when AMSGrad keeps one. Values and learning
@@ -404,6 +408,19 @@ def masked_step(adam, keys, active=None) -> None:
             dr.schedule(t)
         adam.state[key] = (value, promoted, lr, (t, m, v, vmax))
     dr.eval()
+
+
+def finite_state(adam, keys) -> dict[str, "mi.Bool"]:
+    """Per key, a 1-element device ``mi.Bool``: whether its values and Adam moments are all finite (nothing is read
+    back here; the caller reads the flags with its next synchronization)."""
+    out = {}
+    for key in keys:
+        value, _, _, (_, m, v, vmax) = adam.state[key]
+        ok = dr.all(dr.isfinite(dr.detach(value).array)) & dr.all(dr.isfinite(m)) & dr.all(dr.isfinite(v))
+        if vmax is not None:
+            ok = ok & dr.all(dr.isfinite(vmax))
+        out[key] = ok
+    return out
 
 
 def export_state(adam, keys) -> dict[str, np.ndarray]:

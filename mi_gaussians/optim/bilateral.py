@@ -36,7 +36,7 @@ import numpy as np
 from ..config import OptimConfig
 from ..drjit_utils import owned_array
 from ..image_ops import LUMA
-from .adam import export_state, import_state, masked_step, opaque_step_counts
+from .adam import export_state, finite_state, import_state, masked_step, opaque_step_counts
 from .exposure import IDENTITY, transform
 from .schedules import warmup_expon_lr
 
@@ -153,6 +153,10 @@ class BilateralGrids:
         self._adam[KEY] = t - mi.TensorXf(mean.array, (self.levels, 1, 12)) + mi.TensorXf(identity, (12,))
 
     # ------------------------------------------------------------------ checkpoints
+    def finite(self) -> dict[str, "mi.Bool"]:
+        """Whether the values and Adam moments are all finite (a 1-element device flag)."""
+        return {"exposure": finite_state(self._adam, [KEY])[KEY]}
+
     def export(self) -> dict[str, np.ndarray]:
         """The grids, their layout (``layout``: n, L, H, W) and their Adam state, for a checkpoint (``value``,
         ``grids.t/m/v``)."""

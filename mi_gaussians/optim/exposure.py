@@ -36,7 +36,7 @@ import numpy as np
 
 from ..config import OptimConfig
 from ..drjit_utils import owned_array
-from .adam import export_state, import_state, masked_step, opaque_step_counts
+from .adam import export_state, finite_state, import_state, masked_step, opaque_step_counts
 from .schedules import expon_lr
 
 KEY = "exposure"
@@ -108,6 +108,10 @@ class Exposure:
         self._adam[KEY] = t - dr.mean(t, axis=0) + mi.TensorXf(identity, (12,))  # the step may be frozen)
 
     # ------------------------------------------------------------------ checkpoints
+    def finite(self) -> dict[str, "mi.Bool"]:
+        """Whether the values and Adam moments are all finite (a 1-element device flag)."""
+        return {"exposure": finite_state(self._adam, [KEY])[KEY]}
+
     def export(self) -> dict[str, np.ndarray]:
         """The transforms and their Adam state, for a checkpoint (``value``, ``exposure.t/m/v``)."""
         return {"value": np.array(self.tensor, dtype=np.float32).reshape(self.n, 12),

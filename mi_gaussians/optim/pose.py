@@ -52,7 +52,7 @@ from ..config import OptimConfig
 from ..data.camera import Camera
 from ..drjit_utils import owned_array
 from ..raster.projection import ViewParams
-from .adam import export_state, import_state, masked_step, opaque_step_counts
+from .adam import export_state, finite_state, import_state, masked_step, opaque_step_counts
 from .schedules import expon_lr
 
 KEY = "pose"
@@ -191,6 +191,10 @@ class PoseDeltas:
                 for c, d, z in zip(cameras, deltas, self.pivots)]
 
     # ------------------------------------------------------------------ checkpoints
+    def finite(self) -> dict[str, "mi.Bool"]:
+        """Whether the values and Adam moments are all finite (a 1-element device flag)."""
+        return {"pose": finite_state(self._adam, [KEY])[KEY]}
+
     def export(self) -> dict[str, np.ndarray]:
         """The corrections, their pivots and their Adam state, for a checkpoint (``value``, ``pivot``, ``pose.t/m/v``)."""
         return {"value": np.array(self.tensor, dtype=np.float32).reshape(self.n, WIDTH), "pivot": self.pivots.copy(),

@@ -21,7 +21,8 @@ checkpoints and refinements. The first iteration and the strategy's refinement i
 Iteration ``k``'s refinement runs after its evaluation, saves and checkpoint (:meth:`Trainer._refine`), as in the
 reference's ``train.py``: the model scored and saved as iteration ``k`` never holds rows without an optimization step.
 
-A non-finite loss or parameter stops the run with :class:`TrainingDiverged`; the last good checkpoint stays.
+A non-finite loss, or any trained quantity becoming non-finite (:mod:`.guard`, checked at every synchronization and
+before every checkpoint), stops the run with :class:`TrainingDiverged`; the last good checkpoint stays.
 """
 
 from __future__ import annotations
@@ -44,9 +45,10 @@ from ..model.gaussians import Gaussians
 from ..raster.projection import ViewParams
 from ..raster.rasterize import render
 from .. import report, run_folder
-from . import checkpoint
+from . import checkpoint, guard
 from .adam import GaussianAdam
 from .compensation import make_compensation, save_compensation
+from .guard import TrainingDiverged  # noqa: F401  (raised here; importers take it from this module too)
 from .pose import PoseDeltas, pivot_depths, save_refined_cameras
 from .loop_state import History, LoopStats, ViewSampler
 from .strategies import initial_gaussians, make_strategy
@@ -60,10 +62,6 @@ CHECKPOINT = Path(run_folder.CHECKPOINT)
 # Frozen iterations queued between two reads of their losses and flags (progress bar, history, overflow, NaN). More
 # keeps the device busier; fewer wastes fewer iterations when one overflows its instance capacity and is replayed.
 SYNC_EVERY = 25
-
-
-class TrainingDiverged(RuntimeError):
-    """The loss or a parameter became NaN/Inf."""
 
 
 class TrainingStopped(Exception):
@@ -159,6 +157,7 @@ class Trainer:
         self._pending: list[_Pending] = []
         self._valid = None                 # the last queued step's ok flag (chained into the next)
         self._views: list = [None] * len(ds.train)   # ViewParams per training view, built on first use
+        self._finite_at = 0                 # the last iteration whose trained quantities were checked finite
         # while frozen steps run on the model padded to its size class (train_step.py, "Size classes"): its own rows
         self._rows: int | None = None
         self._bar, self._ema, self._last_psnr = None, None, None
@@ -191,18 +190,27 @@ class Trainer:
             self._rows = n
 
     # ------------------------------------------------------------------ checkpoints
+    def check_finite(self) -> None:
+        """:class:`TrainingDiverged` unless every trained quantity is finite (:mod:`.guard`); reads one flag per
+        parameter group (a synchronization; inert padding rows are finite, so no trim is needed)."""
+        guard.check(guard.flags(self.params, self.poses, self.exposure), self.cfg.optim, self._finite_at, self.step,
+                    self.out / CHECKPOINT)
+        self._finite_at = self.step
+
     def save_checkpoint(self) -> None:
+        self.check_finite()
         values = self.gaussians.numpy()         # (without the padding: trimmed)
-        for k, v in values.items():
-            if not np.all(np.isfinite(v)):
-                raise TrainingDiverged(f"parameter {k!r} became non-finite at iteration {self.step}; "
-                                       f"the last good checkpoint ({self.out / CHECKPOINT}) is kept")
         stats, strategy_meta = self.strategy.export_state(self.strategy_state)
         sections = {"param": values, "adam": self.params.export_moments(), "densify": stats}
         if self.exposure is not None:
             sections["exposure"] = self.exposure.export()
         if self.poses is not None:
             sections["pose"] = self.poses.export()
+        for name, arrays in sections.items():     # (the last gate: no checkpoint holds a non-finite value)
+            for k, v in arrays.items():
+                if np.issubdtype(np.asarray(v).dtype, np.floating) and not np.all(np.isfinite(v)):
+                    raise TrainingDiverged(f"{name} {k!r} became non-finite by iteration {self.step}; the last good "
+                                           f"checkpoint ({self.out / CHECKPOINT}) is kept")
         self.loop.close(self.elapsed)
         meta = {"step": self.step, "refine_pending": self._refine_at, "elapsed": self.elapsed,
                 "history": self.history.to_dict(), "loop": self.loop.to_dict(),
@@ -225,7 +233,7 @@ class Trainer:
                 self.poses.restore(sections.get("pose", {}))
         except (KeyError, TypeError, ValueError) as e:
             raise ValueError(f"{path}: checkpoint does not fit this run ({e})") from None
-        self.step = int(meta["step"])
+        self.step = self._finite_at = int(meta["step"])
         # (a checkpoint of iteration k written before k's refinement; older checkpoints were written after it)
         pending = meta.get("refine_pending")
         self._refine_at = None if pending is None else int(pending)
@@ -397,6 +405,7 @@ class Trainer:
                 raise self._diverged(loss, p.step, p.view)
             self._peak = max(self._peak, instances)
             self._commit(p.step, loss, int(p.blended[0]))
+        self.check_finite()
         return True
 
     def _commit(self, step: int, loss: float, blended: int) -> None:
