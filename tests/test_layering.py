@@ -2,8 +2,8 @@
 
 The layers, bottom to top (a module may import from its own layer or a lower one, never a higher one)::
 
-    0    base          config, setting_values, io_utils, _libllvm, errors, drjit_utils, conventions, imwrite,
-                       image_ops, run_folder (the names and the lock of a run's output folder: the trainer, the
+    0    base          config, setting_values, setting_effects, io_utils, _libllvm, errors, memory, drjit_utils,
+                       conventions, imwrite, image_ops, run_folder (the names and the lock of a run's output folder: the trainer, the
                        report and the CLI share them)
     0.5  metrics       metrics (scores images; sits on the base only)
     1    data          mi_gaussians.data.*
@@ -44,6 +44,8 @@ LAYERS: dict[str, float] = {
     "mi_gaussians.image_walk": 0,
     "mi_gaussians.run_folder": 0,
     "mi_gaussians.errors": 0,
+    "mi_gaussians.memory": 0,
+    "mi_gaussians.setting_effects": 0,
     # 0.5: metrics, on the base only
     "mi_gaussians.metrics": 0.5,
     # 1..4
