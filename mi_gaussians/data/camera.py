@@ -74,6 +74,22 @@ def _check_rigid(m: np.ndarray, what: str) -> None:
         raise ValueError(f"{what}: the last row must be 0 0 0 1, got {' '.join(f'{v:g}' for v in m[3])}")
 
 
+#: focal lengths fx, fy further apart than this factor are reported (:func:`intrinsics_problem`): cameras have square
+#: pixels, nearly always; a reconstruction that registered too few images can give far other values
+FOCAL_RATIO_LIMIT = 1.2
+
+
+def intrinsics_problem(cam: "Camera") -> str | None:
+    """One line when the camera's focal lengths differ by more than :data:`FOCAL_RATIO_LIMIT` (pixels far from
+    square: a reconstruction likely gone wrong), else None."""
+    ratio = max(cam.fx, cam.fy) / min(cam.fx, cam.fy)
+    if ratio <= FOCAL_RATIO_LIMIT:
+        return None
+    return (f"camera {cam.name!r}: fx {cam.fx:.6g} and fy {cam.fy:.6g} differ by a factor of {ratio:.2f} (pixels "
+            "that are not square); a structure-from-motion reconstruction from too few registered images gives such "
+            "cameras: check it")
+
+
 @dataclass(frozen=True)
 class Camera:
     """A pinhole camera: intrinsics in pixels, extrinsics as a world-to-camera matrix in OpenCV axes."""

@@ -40,6 +40,30 @@ class ConvertResult:
     num_points: int                 # 3D points of the kept reconstruction
     mean_reprojection_error: float  # pixels
     num_models: int                 # reconstructions found (the largest is kept)
+    focal: tuple[float, float] = (0.0, 0.0)   # fx, fy of the (first) undistorted camera, pixels
+
+    def problems(self) -> list[str]:
+        """What a user must hear about this reconstruction: few of the images registered (below
+        :data:`WARN_REGISTERED`), focal lengths far apart (:data:`~mi_gaussians.data.camera.FOCAL_RATIO_LIMIT`)."""
+        from .camera import FOCAL_RATIO_LIMIT
+
+        out = []
+        if self.num_registered < WARN_REGISTERED * self.num_images:
+            out.append(f"structure from motion registered only {self.num_registered} of the {self.num_images} images "
+                       f"({100 * self.num_registered / self.num_images:.0f} %); the scene holds those "
+                       f"{self.num_registered} views only (too little overlap or texture between the others?)")
+        fx, fy = self.focal
+        if min(fx, fy) > 0 and max(fx, fy) / min(fx, fy) > FOCAL_RATIO_LIMIT:
+            out.append(f"the reconstructed camera has fx {fx:.6g} and fy {fy:.6g}, a factor of "
+                       f"{max(fx, fy) / min(fx, fy):.2f} apart (pixels that are not square): the reconstruction is "
+                       "likely wrong")
+        return out
+
+
+#: fewer registered images than this share of the input is reported (:meth:`ConvertResult.problems`)
+WARN_REGISTERED = 0.5
+#: fewer registered images than this is an error: a scene needs training views and a test view
+MIN_REGISTERED = 3
 
 
 def list_images(images_dir: str | os.PathLike) -> list[str]:
@@ -61,17 +85,18 @@ def convert(images_dir: str | os.PathLike, out_dir: str | os.PathLike, *,
     defaults from :class:`mi_gaussians.config.ConvertConfig`;
     resize: also write images_2/4/8; overwrite: replace an earlier result in ``out_dir`` (only the folders this
     function writes are removed); seed: mapper random seed; verbose: keep COLMAP's own INFO log lines on stderr
-    (otherwise its log level is raised to WARNING for the duration of the call); progress: called with one line per
-    step (default: logging.info).
+    (otherwise its log level is raised to ERROR for the duration of the call: its errors are ours, in one line);
+    progress: called with one line per step (default: logging.info).
 
     Raises ValueError for a missing/empty input folder, fewer than 3 images, an existing result without ``overwrite``,
-    or when no reconstruction could be built.
+    or when no reconstruction of at least :data:`MIN_REGISTERED` images could be built. What the result's user must
+    hear (few images registered, focal lengths far apart): :meth:`ConvertResult.problems`.
     """
     import pycolmap
 
     level = pycolmap.logging.minloglevel
     if not verbose:
-        pycolmap.logging.minloglevel = max(level, 1)
+        pycolmap.logging.minloglevel = max(level, 2)      # (its errors too: ours name the problem in one line)
     try:
         return _convert(Path(images_dir), Path(out_dir), camera_model, single_camera, max_image_size,
                         max_num_features, num_threads, resize, overwrite, seed, progress or _log.info)
@@ -142,6 +167,10 @@ def _convert(images_dir: Path, out_dir: Path, camera_model: str, single_camera: 
     best_key, best = max(models.items(), key=lambda kv: kv[1].num_reg_images())
     say(f"    {len(models)} reconstruction(s); keeping #{best_key}: {best.num_reg_images()}/{len(names)} images, "
         f"{best.num_points3D()} points, mean reprojection error {best.compute_mean_reprojection_error():.3f} px")
+    if best.num_reg_images() < MIN_REGISTERED:
+        raise ValueError(f"{images_dir}: structure from motion registered only {best.num_reg_images()} of the "
+                         f"{len(names)} images (too little overlap or texture between them); a scene needs at least "
+                         f"{MIN_REGISTERED} (its work folder {work} is kept)")
 
     say("[4/4] undistorting images")
     pycolmap.undistort_images(out_dir, work / "sparse" / str(best_key), images_dir, output_type="COLMAP",
@@ -156,8 +185,10 @@ def _convert(images_dir: Path, out_dir: Path, camera_model: str, single_camera: 
         _write_reduced_copies(out_dir, say)
     result = pycolmap.Reconstruction(str(sparse0))
     say(f"done: {out_dir}")
+    cam = next(iter(result.cameras.values()))
     return ConvertResult(out_dir, len(names), result.num_reg_images(), result.num_points3D(),
-                         float(result.compute_mean_reprojection_error()), len(models))
+                         float(result.compute_mean_reprojection_error()), len(models),
+                         (float(cam.focal_length_x), float(cam.focal_length_y)))
 
 
 def _write_reduced_copies(out_dir: Path, say: Callable[[str], None]) -> None:

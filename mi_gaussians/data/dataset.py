@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -117,8 +118,16 @@ class Dataset:
 
     def scene_extent(self, rule: str = DataConfig.extent) -> float:
         """The length scale a run trains with (``data.extent``; :func:`.pointcloud.scene_extent` of the train
-        cameras and ``points_xyz``)."""
-        return _pc.scene_extent([v.camera for v in self.train], self.points_xyz, rule)
+        cameras and ``points_xyz``); :class:`.pointcloud.DegenerateScale` naming the dataset when it is 0 or not
+        finite."""
+        return self.scene_scale(rule)[0]
+
+    def scene_scale(self, rule: str = DataConfig.extent) -> tuple[float, str | None]:
+        """(:meth:`scene_extent`, why it fell back to the cameras' spread or None): :func:`.pointcloud.scene_scale`."""
+        try:
+            return _pc.scene_scale([v.camera for v in self.train], self.points_xyz, rule)
+        except _pc.DegenerateScale as e:
+            raise _pc.DegenerateScale(f"{self.root}: {e}") from None
 
 
 # ---------------------------------------------------------------------------------------------------- detection
@@ -427,15 +436,21 @@ def check_trainable_size(ds: Dataset) -> None:
                              f"pixels; training needs at least {MIN_IMAGE_SIDE} per side (use a smaller divisor)")
 
 
+#: seconds before a progress bar shows (a short wait says nothing; a long one is never silent); the environment's
+#: MI_GS_PROGRESS_DELAY replaces it (0: at once, as the tests ask on tiny data)
+PROGRESS_DELAY = float(os.environ.get("MI_GS_PROGRESS_DELAY", "2") or 2)
+
+
 def unreadable_images(views: list[View], progress: bool = False) -> list[str]:
-    """Decode every view's image (and mask) once; the one-line problems of those that cannot be read ("file:
-    problem"), empty when all can. Run before anything is written, since views are otherwise decoded only when
+    """Decode every view's image (and mask) once, with a progress bar on stderr (``progress``; after
+    :data:`PROGRESS_DELAY` seconds); the one-line problems of those that cannot be read ("file: problem"), empty when
+    all can. Run before anything is written, since views are otherwise decoded only when
     training or evaluation reaches them."""
     from tqdm import tqdm
 
     problems = []
     for v in tqdm(views, desc="checking images", unit="image", disable=not progress or len(views) < 2,
-                  leave=False):
+                  leave=False, delay=PROGRESS_DELAY, file=sys.stderr):
         try:
             v.loader.load(v.image_path)
         except (ValueError, OSError) as e:

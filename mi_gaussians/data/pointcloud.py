@@ -73,17 +73,45 @@ def scene_extent(cameras, points: np.ndarray | None, rule: str = config.DataConf
     every length rule a fraction of the wrong size (mi_room: 0.52 by its cameras, 3.10 by the depth they see; a
     Gaussian over 5 cm, a tenth of 0.52, was pruned from walls seen 3 m away); around an object the spread is the
     larger (mi_objects: 4.87 against 4.01). 'scene': the larger of the two. 'depth' and 'scene' fall back to the
-    spread when no camera sees a point."""
+    spread when no camera sees a point (:func:`scene_scale` says so). ValueError when the result is 0 or not finite
+    (:class:`DegenerateScale`): every length rule would be 0 and the Gaussians would never move."""
+    return scene_scale(cameras, points, rule)[0]
+
+
+class DegenerateScale(ValueError):
+    """A scene with no length scale (0 or not finite): nothing a run could train with."""
+
+
+def scene_scale(cameras, points: np.ndarray | None, rule: str = config.DataConfig.extent) -> tuple[float, str | None]:
+    """(:func:`scene_extent`, None), or (the cameras' spread, why) when ``rule`` fell back to it: no camera sees a
+    point. Raises :class:`DegenerateScale` naming why when the scale is 0 or not finite."""
     cams = list(cameras)
-    extent = camera_extent(np.stack([c.center for c in cams]))[1]
-    if rule == "cameras":
-        return extent
-    if rule not in ("scene", "depth"):
+    spread = camera_extent(np.stack([c.center for c in cams]))[1]
+    if rule not in config.EXTENTS:
         raise ValueError(f"scene_extent: unknown rule {rule!r} (expected one of {', '.join(config.EXTENTS)})")
-    depth = None if points is None else seen_depth(cams, points)
-    if depth is None:
-        return extent
-    return depth if rule == "depth" else max(extent, depth)
+    depth = None if rule == "cameras" or points is None else seen_depth(cams, points)
+    fallback = None
+    if rule == "cameras":
+        value = spread
+    elif depth is None:
+        value = spread
+        n = 0 if points is None else len(points)
+        fallback = (f"none of the {n:,} initial points lies in front of a training camera and inside its image, so "
+                    f"the length scale (data.extent={rule}) falls back to the cameras' spread, {spread:.6g}")
+    else:
+        value = depth if rule == "depth" else max(spread, depth)
+    if not (np.isfinite(value) and value > 0):
+        cams_said = f"{len(cams)} training camera{'s' if len(cams) != 1 else ''}"
+        where = ("they stand at one point (spread 0)" if np.isfinite(spread) and spread == 0 else
+                 f"their spread is {spread}")
+        seen = "" if rule == "cameras" else (f", and {fallback.partition(', so')[0]}" if fallback else "")
+        advice = ("measure it by the depth the cameras see the points at (--set data.extent=depth), or train on more "
+                  "views (--test-every)" if rule == "cameras" else
+                  "give initial points the cameras see (e.g. --init frustum), or more training views (--test-every)")
+        raise DegenerateScale(f"the scene has no length scale (data.extent={rule} gives {value:g}): {cams_said}, "
+                              f"{where}{seen}; every position rate and size rule would be 0 and the Gaussians would "
+                              f"never move: {advice}")
+    return float(value), fallback
 
 
 def random_points_in_box(n: int, lo: Sequence[float], hi: Sequence[float], seed: int) -> tuple[np.ndarray, np.ndarray]:

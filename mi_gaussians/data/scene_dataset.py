@@ -83,6 +83,11 @@ def load_scene_dataset(path: str | os.PathLike, cfg: SceneConfig = SceneConfig()
     views = scene_views(scene, p, cfg, test_every=test_every, seed=seed)
     key = cache_key(p, views, cfg.defines)
     _check_key(p, key, expect_key)
+    if render_missing:              # (before any reference is rendered: a film nobody has memory for is refused)
+        from ..memory import check_training
+
+        check_training([(c.width, c.height) for c in views.train], str(p),
+                       advice="give a smaller film size (-r W [H]) or fewer views (--views)")
     cache_dir = Path(cache_root) / key
     if render_missing:
         write_rig_file(cache_dir, p, cfg.defines, key, views)
@@ -92,8 +97,13 @@ def load_scene_dataset(path: str | os.PathLike, cfg: SceneConfig = SceneConfig()
     test = [reference_view(c, paths[c.name], bg_linear, cfg.linear) for c in views.test]
     # (SfM runs on the composited training images: its cache depends on the background and the colour space)
     sfm_tag = "_".join(f"{b:.4g}" for b in bg) + ("_linear" if cfg.linear else "")
-    xyz, rgb = scene_init.initial_points(scene, cfg.init, cfg.init_points, train, cache_dir / f"sfm_{sfm_tag}",
-                                         seed=seed, linear=cfg.linear, log=log)
+    try:
+        xyz, rgb = scene_init.initial_points(scene, cfg.init, cfg.init_points, train, cache_dir / f"sfm_{sfm_tag}",
+                                             seed=seed, linear=cfg.linear, log=log)
+    except ValueError as e:
+        if str(p) in str(e):
+            raise
+        raise ValueError(f"{p}: {e}") from None
     return Dataset(root=p, layout="mitsuba", train=train, test=test, points_xyz=xyz, points_rgb=rgb,
                    background=np.asarray(bg, dtype=np.float32), color_space="linear" if cfg.linear else "srgb",
                    references=cache_dir, points_from=cfg.init)

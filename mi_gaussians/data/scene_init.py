@@ -76,7 +76,11 @@ def sample_surface_points(scene, n: int, seed: int = 0) -> np.ndarray:
             shapes.append(s)
             areas.append(a)
     if not shapes:
-        raise ValueError("the scene has no shape that Mitsuba can sample positions on")
+        k = len(scene.shapes())
+        raise ValueError(f"the scene has no shape that Mitsuba can sample positions on (its {k} shape"
+                         f"{'s are' if k != 1 else ' is'} Gaussians or without a surface area), so the initial "
+                         "points cannot be sampled on shapes (--init shapes): start from random points in its "
+                         "bounding box (--init random) or from structure from motion on the references (--init sfm)")
     rng = np.random.default_rng(seed)
     counts = rng.multinomial(n, np.asarray(areas) / np.sum(areas))
     out = []
