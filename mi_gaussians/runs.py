@@ -170,6 +170,9 @@ def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cac
                           expect_key=record.references_key if record else None, farm=farm, log=log,
                           with_points=False)
     check_trainable_size(ds)
+    if ds.layout != "mitsuba":          # (a scene file's are checked before its references are rendered)
+        check_training_memory(ds, src)
+    _warn_camera_problems(ds, log)
     digest = fingerprint(ds) if ds.layout != "mitsuba" else None    # (a scene file's references carry their own key)
     if record is not None:
         check_resumed_dataset(src, out, record, digest, log)
@@ -184,7 +187,9 @@ def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cac
         if cache is None and cfg.data.init in ("auto", "triangulate"):
             manifest.claim([POINTS])                  # (a triangulation's cache, kept by --overwrite)
         ds = initial_points(ds, cfg, points_root(out, cache), log)
-    trainer = Trainer(ds, cfg, out, progress=progress, given_cameras=given)     # (decodes the training images)
+    _check_scene_scale(ds, cfg, log)
+    with decoding_progress(ds, progress) as ds:
+        trainer = Trainer(ds, cfg, out, progress=progress, given_cameras=given)     # (decodes the training images)
     if record is None and log is not None:
         _note_if_never_refined(trainer, cfg, log)
     watcher = watch(trainer, ds) if watch is not None else None
@@ -213,6 +218,81 @@ def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cac
             watcher.close()
         raise
     return RunResult(metrics, trainer, trainer.resumed_from, watcher)
+
+
+def check_training_memory(ds: Dataset, src) -> None:
+    """The decoded training images and one training iteration fit in memory (:mod:`mi_gaussians.memory`; ValueError
+    with the estimate otherwise), before anything is decoded."""
+    from .memory import check_training
+
+    check_training([(v.camera.width, v.camera.height) for v in ds.train], str(src),
+                   advice="train on smaller images (a larger -r divisor: -r 2, 4 or 8) or on fewer of them")
+
+
+def _warn_camera_problems(ds: Dataset, log: Callable[[str], None] | None) -> None:
+    """One warning when training cameras have focal lengths far apart (:func:`~mi_gaussians.data.camera.
+    intrinsics_problem`)."""
+    from .data.camera import intrinsics_problem
+
+    bad = [p for v in ds.train if (p := intrinsics_problem(v.camera)) is not None]
+    if bad and log is not None:
+        more = f" (and {len(bad) - 1} more training views)" if len(bad) > 1 else ""
+        log(f"mi-gs: warning: {ds.root}: {bad[0]}{more}")
+
+
+def _check_scene_scale(ds: Dataset, cfg: TrainConfig, log: Callable[[str], None] | None) -> None:
+    """The run's length scale (``data.extent``): one note when it falls back to the cameras' spread, and the
+    one-line error of :class:`~mi_gaussians.data.pointcloud.DegenerateScale` when it is 0 or not finite."""
+    _, fallback = ds.scene_scale(cfg.data.extent)
+    if fallback is not None and log is not None:
+        log(f"note: {ds.root}: {fallback}")
+
+
+class _CountingLoader:
+    """An image loader that advances a progress bar the first time each of its images is decoded (the trainer decodes
+    every training image as it starts); otherwise the loader it wraps."""
+
+    def __init__(self, base, tick):
+        self.base, self._tick = base, tick
+
+    def load(self, path):
+        out = self.base.load(path)
+        self._tick(path)
+        return out
+
+    def __getattr__(self, name):
+        if name in ("base", "_tick"):
+            raise AttributeError(name)
+        return getattr(self.base, name)
+
+
+@contextlib.contextmanager
+def decoding_progress(ds: Dataset, progress: bool = True):
+    """``ds`` whose training views advance a progress bar on stderr ("loading training images", shown after
+    ``PROGRESS_DELAY`` seconds) as they are first decoded, within the block (a large dataset takes minutes to decode;
+    nothing else would show)."""
+    if not progress or len(ds.train) < 2:
+        yield ds
+        return
+    from tqdm import tqdm
+
+    from .data.dataset import PROGRESS_DELAY
+
+    bar = tqdm(total=len(ds.train), desc="loading training images", unit="image", leave=False, file=sys.stderr,
+               delay=PROGRESS_DELAY)
+    seen: set = set()
+
+    def tick(path):
+        if not bar.disable and path not in seen and len(seen) < len(ds.train):
+            seen.add(path)
+            bar.update(1)
+
+    try:
+        yield dataclasses.replace(ds, train=[dataclasses.replace(v, loader=_CountingLoader(v.loader, tick))
+                                             for v in ds.train])
+    finally:
+        bar.close()
+        bar.disable = True
 
 
 def write_cameras(path: Path, ds: Dataset) -> None:
@@ -366,6 +446,7 @@ def refined_training_cameras(ds: Dataset, out: str | Path, log: Callable[[str], 
 
     path = Path(out) / REFINED_CAMERAS
     if not path.is_file():
+        _warn_if_refined_missing(out, path, log)
         return ds
     try:
         refined = _refined_cameras(path)
@@ -375,7 +456,26 @@ def refined_training_cameras(ds: Dataset, out: str | Path, log: Callable[[str], 
         if log is not None:
             log(f"mi-gs: warning: {e}; the training views keep the dataset's cameras")
         return ds
-    return dataclasses.replace(ds, train=[dataclasses.replace(v, camera=refined[v.name]) for v in ds.train])
+    return dataclasses.replace(ds, train=[_moved(v, refined[v.name]) for v in ds.train])
+
+
+def _moved(view, refined):
+    """``view`` seen from the pose of ``refined`` (a refined camera of the same view), with its own intrinsics: a
+    refinement moves the camera, and a dataset loaded at another resolution (``-r``) keeps its image size."""
+    return dataclasses.replace(view, camera=dataclasses.replace(view.camera,
+                                                                world_to_camera=refined.world_to_camera.copy()))
+
+
+def _warn_if_refined_missing(out: str | Path, path: Path, log: Callable[[str], None] | None) -> None:
+    """One warning when the run in ``out`` refined its cameras (``--pose-opt``) and ``path`` (its
+    ``cameras_refined.json``) is gone: its training views are then seen from the unrefined cameras."""
+    try:
+        refined_run = RunRecord.read(Path(out), "").train.optim.pose_opt
+    except ValueError:
+        return
+    if refined_run and log is not None:
+        log(f"mi-gs: warning: {path}: missing, though the run refined its training cameras (--pose-opt); the "
+            "training views keep the dataset's cameras, which the model was not trained from")
 
 
 def _refined_cameras(path: Path) -> dict:
@@ -412,19 +512,23 @@ def model_raster_config(model: str | Path, antialiased: bool | None = None,
 
 def model_run_cameras(model: str | Path, ds: Dataset, log: Callable[[str], None] | None = to_stderr) -> Dataset:
     """``ds`` with the refined training cameras of the run whose folder holds the model file ``model``, when that run
-    refined them (``--pose-opt``) and ``ds`` is the dataset it trained on (said in one line to ``log``); else ``ds``."""
+    refined them (``--pose-opt``) and ``ds`` is the dataset it trained on, at any resolution (the refined poses with
+    ``ds``'s intrinsics; said in one line to ``log``, as a refined run whose file is missing is); else ``ds``."""
     from .run_folder import REFINED_CAMERAS
 
     folder = Path(model).parent
-    if not (folder / REFINED_CAMERAS).is_file() or not (folder / CONFIG).is_file():
+    if not (folder / CONFIG).is_file():
         return ds
     try:
         record = RunRecord.read(folder, "")
     except ValueError:
         return ds
-    if Path(record.dataset).resolve() != Path(ds.root).resolve() or record.train.data.resolution != ds.resolution:
+    if Path(record.dataset).resolve() != Path(ds.root).resolve():
         return ds
     path = folder / REFINED_CAMERAS
+    if not path.is_file():
+        _warn_if_refined_missing(folder, path, log)
+        return ds
     try:            # (by name, in either split: the run may have split the views otherwise, e.g. --test-every 0)
         refined = _refined_cameras(path)
         if not set(refined) <= {v.name for v in ds.views}:
@@ -437,6 +541,6 @@ def model_run_cameras(model: str | Path, ds: Dataset, log: Callable[[str], None]
         log(f"note: the run's training views use the cameras it refined ({path})")
 
     def moved(views):
-        return [dataclasses.replace(v, camera=refined[v.name]) if v.name in refined else v for v in views]
+        return [_moved(v, refined[v.name]) if v.name in refined else v for v in views]
 
     return dataclasses.replace(ds, train=moved(ds.train), test=moved(ds.test))
