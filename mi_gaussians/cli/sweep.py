@@ -7,7 +7,7 @@ from pathlib import Path
 
 from ..cluster.ray_cluster import Waits
 from .args import add_output, existing, positive_float
-from .errors import EXIT_RUNS_FAILED
+from .errors import EXIT_RUNS_FAILED, note
 
 
 def add_parser(sub) -> None:
@@ -40,6 +40,8 @@ def run(args) -> int:
     from ..io_utils import check_output_folder
 
     spec = read_spec(existing(args.spec), cuda=mi.variant().startswith("cuda"))
+    for line in spec.notes:
+        note(line)
     out = Path(args.output)
     check_output_folder(out)
     try:

@@ -28,11 +28,12 @@ def row(run, status: str, metrics: dict | None = None, resumed_at=None, error: s
 
 def means(rows: list[dict], grid_keys) -> list[dict]:
     """The mean of every metric per setting (the grid's values), over the finished runs of all datasets and seeds."""
-    groups: dict[tuple, list[dict]] = {}
+    groups: dict[tuple, tuple[tuple, list[dict]]] = {}
     for r in rows:
-        groups.setdefault(tuple(r[k] for k in grid_keys), []).append(r)
+        values = tuple(r.get(k) for k in grid_keys)
+        groups.setdefault(tuple(map(_hashable, values)), (values, []))[1].append(r)
     out = []
-    for values, members in groups.items():
+    for values, members in groups.values():
         done = [r for r in members if r["status"] == "done"]
         m = {k: v for k, v in zip(grid_keys, values)}
         m["runs"] = f"{len(done)} of {len(members)}"
@@ -41,6 +42,16 @@ def means(rows: list[dict], grid_keys) -> list[dict]:
             m[key] = sum(got) / len(got) if got else None
         out.append(m)
     return out
+
+
+def _hashable(v):
+    """``v`` as a key of the groups of :func:`means` (the spec check lets only scalars into a grid; a list, e.g. in
+    the rows of an earlier version's sweep, groups by its text rather than failing)."""
+    try:
+        hash(v)
+    except TypeError:
+        return repr(v)
+    return v
 
 
 def _shown(key: str, v) -> str:

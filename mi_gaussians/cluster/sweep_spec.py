@@ -68,6 +68,7 @@ class SweepSpec:
     gpus: float
     retries: int
     runs: tuple[PlannedRun, ...]
+    notes: tuple[str, ...] = ()      # what in the spec has no effect (a grid of one value, a setting no run uses)
 
     @property
     def grid_keys(self) -> tuple[str, ...]:
@@ -112,11 +113,19 @@ def read_spec(path: str | Path, cuda: bool = False) -> SweepSpec:
         raise bad("retries", f"expected an integer >= 0, got {retries!r}")
     settings = _table(spec, "set", bad)
     grid = _table(spec, "grid", bad)
+    notes = []
     for key, values in grid:
         if not isinstance(values, list) or not values:
             raise bad(f"grid.{key}", f"expected a non-empty list of values, got {values!r}")
+        for v in values:
+            if not isinstance(v, (bool, int, float, str)):
+                raise bad(f"grid.{key}", f"each value must be one number, string or true/false, got {v!r} (a setting "
+                                         'of several numbers takes them as one string: "1,1,1")')
         if len(set(map(_text, values))) != len(values):
             raise bad(f"grid.{key}", f"values repeat: {values!r}")
+        if len(values) == 1:
+            notes.append(f"{path}: grid.{key} has one value ({_text(values[0])}): every run has it, as [set] would "
+                         "give it; give two or more values to compare them")
     for key, _ in settings:
         if key in dict(grid):
             raise bad(f"set.{key}", "is also in [grid] (give it in one of them)")
@@ -132,9 +141,10 @@ def read_spec(path: str | Path, cuda: bool = False) -> SweepSpec:
     for key, value, zero in (("cpus", cpus, False), ("gpus", gpus, True)):
         if problem := _resource_problem(value, zero):
             raise bad(f"resources.{key}", f"{problem}, got {value!r}")
-    runs = _plan(path, datasets, labels, iterations, seeds, settings, grid)
+    runs, inert = _plan(path, datasets, labels, iterations, seeds, settings, grid)
     return SweepSpec(path, datasets, labels, iterations, tuple(seeds), settings,
-                     tuple((k, tuple(v)) for k, v in grid), float(cpus), float(gpus), int(retries), runs)
+                     tuple((k, tuple(v)) for k, v in grid), float(cpus), float(gpus), int(retries), runs,
+                     tuple(notes + inert))
 
 
 def _resource_problem(value, zero: bool) -> str | None:
@@ -217,9 +227,14 @@ def _labels(datasets, bad) -> tuple[str, ...]:
     return tuple(names)
 
 
-def _plan(path, datasets, labels, iterations, seeds, settings, grid) -> tuple[PlannedRun, ...]:
+def _plan(path, datasets, labels, iterations, seeds, settings, grid) -> tuple[tuple[PlannedRun, ...], list[str]]:
+    """The runs, and a note for each setting of the spec that has no effect in some of them
+    (:func:`mi_gaussians.setting_effects.inert`)."""
+    from ..setting_effects import inert
+
     keys = [k for k, _ in grid]
     runs, names = [], set()
+    unused: dict[str, tuple[int, str]] = {}       # "set.KEY" / "grid.KEY" -> (runs where it has no effect, why)
     for (dataset, label), values, seed in itertools.product(zip(datasets, labels),
                                                             itertools.product(*[v for _, v in grid]), seeds):
         setting = tuple(zip(keys, values))
@@ -236,10 +251,18 @@ def _plan(path, datasets, labels, iterations, seeds, settings, grid) -> tuple[Pl
                 from None
         except ValueError as e:
             raise ValueError(f"{path}: {e}") from None
+        for key, why in inert(cfg, [k for k in where if k not in ("seed", "data.seed")], is_scene_file(dataset)):
+            count, first = unused.get(where[key], (0, why))
+            unused[where[key]] = (count + 1, first)
         name = "-".join([label] + (["_".join(_safe(_text(v)) for v in values)] if keys else []) + [f"s{seed}"])
         if name in names:
             raise ValueError(f"{path}: grid: two runs would share the folder name {name!r} (values that differ only "
                              "in characters a folder name cannot hold)")
         names.add(name)
         runs.append(PlannedRun(name, dataset, label, setting, seed, cfg))
-    return tuple(runs)
+    notes = []
+    for origin, (count, why) in unused.items():
+        which = ("the sweep's one run" if len(runs) == 1 else f"all {count} runs" if count == len(runs)
+                 else f"{count} of the {len(runs)} runs")
+        notes.append(f"{path}: {origin} has no effect in {which}: {why}")
+    return tuple(runs), notes
