@@ -39,6 +39,11 @@ from .viewer_entries import ViewEntry
 RENDER_MODES = ("RGB", "Alpha", "Expected depth", "Gaussians per tile")
 
 
+#: the sizes (longest image side, pixels) the viewer's panel offers: at rest, and while the camera moves
+MAX_SIZE_RANGE = (128, 4096)
+MOVING_SIZE_RANGE = (64, 2048)
+
+
 @dataclass(frozen=True)
 class ViewerConfig:
     host: str = "127.0.0.1"
@@ -311,8 +316,10 @@ class Viewer:
         self._sh = gui.add_slider("SH degree", min=0, max=max(g.sh_degree, 1), step=1, initial_value=g.sh_degree,
                                   disabled=g.sh_degree == 0)
         self._bg = gui.add_rgb("Background", tuple(int(round(255 * min(max(b, 0.0), 1.0))) for b in self._background))
-        self._max = gui.add_slider("Size at rest", min=128, max=4096, step=32, initial_value=self.cfg.max_size)
-        self._moving = gui.add_slider("Size moving", min=64, max=2048, step=32, initial_value=self.cfg.moving_size)
+        self._max = gui.add_slider("Size at rest", min=MAX_SIZE_RANGE[0], max=MAX_SIZE_RANGE[1], step=32,
+                                   initial_value=self.cfg.max_size)
+        self._moving = gui.add_slider("Size moving", min=MOVING_SIZE_RANGE[0], max=MOVING_SIZE_RANGE[1], step=32,
+                                      initial_value=self.cfg.moving_size)
         self._stats = gui.add_markdown("")
         names = ["(free)"] + [v.name for v in self.views]
         self._camera = gui.add_dropdown("Camera", names, initial_value="(free)", visible=bool(self.views))

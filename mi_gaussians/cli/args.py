@@ -40,6 +40,34 @@ def non_negative_int(text: str) -> int:
     return value
 
 
+def port_number(text: str) -> int:
+    """argparse type: a TCP port, 1..65535."""
+    value = _integer(text)
+    if not 1 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a port number from 1 to 65535, got {text}")
+    return value
+
+
+def sized(low: int, high: int, what: str):
+    """argparse type: an integer from ``low`` to ``high`` (``what``: where the bounds come from)."""
+
+    def parse(text: str) -> int:
+        value = _integer(text)
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"expected {low} to {high} pixels ({what}), got {text}")
+        return value
+
+    return parse
+
+
+def output_path(text: str) -> str:
+    """argparse type: a path that is not empty (``-o ''``, an unset shell variable, would write into the current
+    folder)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("expected a path, got an empty one (an unset shell variable?)")
+    return text
+
+
 def finite_float(text: str) -> float:
     """argparse type: a finite number (no nan or inf)."""
     try:
@@ -94,7 +122,7 @@ def add_variant(parser, after_command: bool = False) -> None:
 
 def add_output(parser, help: str, overwrite: str | None = None) -> None:
     """``-o/--output`` (required), and ``--overwrite`` with the help ``overwrite`` when the command replaces."""
-    parser.add_argument("-o", "--output", required=True, help=help)
+    parser.add_argument("-o", "--output", type=output_path, required=True, help=help)
     if overwrite is not None:
         parser.add_argument("--overwrite", action="store_true", help=overwrite)
 
@@ -114,39 +142,84 @@ def add_define(parser, help: str) -> None:
     parser.add_argument("-D", "--define", action="append", default=None, metavar="KEY=VALUE", help=help)
 
 
+#: the viewer's options: (flag, dest); their defaults are ``ViewerConfig``'s (None on the command line: not given)
+VIEWER_OPTIONS = (("--port", "port"), ("--host", "host"), ("--max-size", "max_size"), ("--moving-size", "moving_size"))
+
+
 def add_viewer_options(parser) -> None:
-    """Where the browser viewer serves and how large its frames are (``mi_gaussians.viewer.ViewerConfig``)."""
-    from ..viewer import ViewerConfig
+    """Where the browser viewer serves and how large its frames are (``mi_gaussians.viewer.ViewerConfig``; the sizes
+    within the ranges of the viewer's own size sliders)."""
+    from ..viewer import MAX_SIZE_RANGE, MOVING_SIZE_RANGE, ViewerConfig
 
     v = ViewerConfig()
-    parser.add_argument("--port", type=positive_int, default=v.port, help=f"viewer port (default {v.port})")
-    parser.add_argument("--host", default=v.host, help=f"viewer address (default {v.host}; 0.0.0.0: every interface)")
-    parser.add_argument("--max-size", type=positive_int, default=v.max_size,
-                        help=f"longest image side at rest (default {v.max_size})")
-    parser.add_argument("--moving-size", type=positive_int, default=v.moving_size,
-                        help=f"longest image side while the camera moves (default {v.moving_size})")
+    parser.add_argument("--port", type=port_number, default=None, help=f"viewer port (default {v.port})")
+    parser.add_argument("--host", default=None, help=f"viewer address (default {v.host}; 0.0.0.0: every interface)")
+    parser.add_argument("--max-size", type=sized(*MAX_SIZE_RANGE, "the viewer's size slider"), default=None,
+                        help=f"longest image side at rest, {MAX_SIZE_RANGE[0]} to {MAX_SIZE_RANGE[1]} "
+                             f"(default {v.max_size})")
+    parser.add_argument("--moving-size", type=sized(*MOVING_SIZE_RANGE, "the viewer's size slider"), default=None,
+                        help=f"longest image side while the camera moves, {MOVING_SIZE_RANGE[0]} to "
+                             f"{MOVING_SIZE_RANGE[1]} (default {v.moving_size})")
+
+
+def viewer_options_given(args) -> list[str]:
+    """The viewer's options given on the command line."""
+    return [flag for flag, dest in VIEWER_OPTIONS if getattr(args, dest, None) is not None]
 
 
 def viewer_config(args):
+    """The ``ViewerConfig`` of the options (``ViewerConfig``'s defaults for those not given)."""
+    import dataclasses
+
     from ..viewer import ViewerConfig
 
-    return ViewerConfig(host=args.host, port=args.port, max_size=args.max_size, moving_size=args.moving_size)
+    return dataclasses.replace(ViewerConfig(), **{dest: getattr(args, dest) for _, dest in VIEWER_OPTIONS
+                                                  if getattr(args, dest, None) is not None})
+
+
+def check_viewer(args) -> None:
+    """Before anything starts (a model loaded, a run trained): the viewer's address can be served (the host resolves,
+    the port can be bound) and its largest frame fits in memory; one line otherwise."""
+    import socket
+
+    from ..memory import check_image
+
+    cfg = viewer_config(args)
+    try:
+        infos = socket.getaddrinfo(cfg.host, cfg.port, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError, ValueError) as e:
+        raise InputError(f"--host {cfg.host}: not an address this machine can serve at "
+                         f"({getattr(e, 'strerror', None) or e})") from None
+    family, _, _, _, address = infos[0]
+    try:
+        with socket.socket(family, socket.SOCK_STREAM) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            probe.bind(address)
+    except (OSError, OverflowError) as e:
+        raise InputError(f"--host {cfg.host} --port {cfg.port}: cannot serve there "
+                         f"({getattr(e, 'strerror', None) or e})") from None
+    try:
+        check_image(cfg.max_size, cfg.max_size, "--max-size", advice="give a smaller --max-size")
+    except ValueError as e:
+        raise InputError(str(e)) from None
 
 
 def start_viewer(viewer, args) -> None:
     """Start serving; an address that cannot be served is the user's input error, and one beyond this machine is
     served with a warning (the viewer has no authentication)."""
+    cfg = viewer_config(args)
     try:
         viewer.start()
-    except OSError as e:
-        raise InputError(f"--host {args.host} --port {args.port}: cannot serve there ({e.strerror or e})") from None
-    if not is_loopback(args.host):
+    except (OSError, OverflowError) as e:
+        raise InputError(f"--host {cfg.host} --port {cfg.port}: cannot serve there "
+                         f"({getattr(e, 'strerror', None) or e})") from None
+    if not is_loopback(cfg.host):
         import socket
 
         from .errors import warn
 
-        warn(f"--host {args.host}: the viewer serves the model, its cameras and reference images to every machine "
-             f"that can reach this one, without authentication (they open http://{socket.gethostname()}:{args.port};"
+        warn(f"--host {cfg.host}: the viewer serves the model, its cameras and reference images to every machine "
+             f"that can reach this one, without authentication (they open http://{socket.gethostname()}:{cfg.port};"
              " --host 127.0.0.1 keeps it on this machine)")
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 from .args import add_output, positive_int
+from .errors import warn
 
 
 def add_parser(sub) -> None:
@@ -28,7 +29,11 @@ def run(args) -> int:
     res = convert(args.images, args.output, camera_model=args.camera_model, resize=args.resize,
                   overwrite=args.overwrite, num_threads=args.threads, max_image_size=args.max_image_size,
                   progress=lambda line: print(line, flush=True))
+    problems = res.problems()
     print(json.dumps({"scene": str(res.out_dir), "images": res.num_images, "registered": res.num_registered,
-                      "points": res.num_points, "mean_reprojection_error_px": round(res.mean_reprojection_error, 4)},
-                     indent=2))
+                      "points": res.num_points, "mean_reprojection_error_px": round(res.mean_reprojection_error, 4),
+                      "fx": round(res.focal[0], 4), "fy": round(res.focal[1], 4),
+                      **({"problems": problems} if problems else {})}, indent=2), flush=True)
+    for line in problems:
+        warn(f"{res.out_dir}: {line}")
     return 0

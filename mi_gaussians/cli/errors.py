@@ -25,6 +25,12 @@ def os_error_line(e: OSError) -> str:
     return f"{' -> '.join(names)}: {what}" if names else one_line(e)
 
 
+def note(line: str) -> None:
+    """A note on stderr: ``note: <line>`` (something the user may not expect, e.g. a setting with no effect; kept by
+    ``--quiet``)."""
+    print(f"note: {line}", file=sys.stderr, flush=True)
+
+
 def warn(line: str) -> None:
     """A warning on stderr: ``mi-gs: warning: <line>`` (the command goes on)."""
     print(f"mi-gs: warning: {line}", file=sys.stderr, flush=True)

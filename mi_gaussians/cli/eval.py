@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from . import errors
 from .errors import InputError
 
 
@@ -40,7 +41,11 @@ def _evaluate(args, out: Path, record) -> int:
         raise InputError(f"{out / run_folder.EVAL}: exists (give --overwrite to replace it)")
     manifest.check_free([run_folder.EVAL])
     ds = run_dataset(record, out, args.dataset)
-    views = ds.test if ds.test else ds.train
+    views = ds.test
+    if not views:           # (as metrics.json: the first training view, through its refined camera when refined)
+        views = ds.train[:1]
+        errors.note(f"the run in {out} has no test views: scoring its first training view, {views[0].name}, as "
+                    "metrics.json does")
     g = Gaussians.load_ply(out / run_folder.MODEL)
     scores, note = evaluate_views(g, views, tuple(ds.background), cfg=record.train.raster,
                                   color_space=ds.color_space)
@@ -48,7 +53,7 @@ def _evaluate(args, out: Path, record) -> int:
     note = report.pop("lpips_note", None)
     half, _ = evaluate_views(g, views, tuple(ds.background), cfg=record.train.raster, color_space=ds.color_space,
                              protocol="half")
-    result = {"split": "test" if ds.test else "train", "protocol": PROTOCOLS["full"], **report,
+    result = {"split": "test" if ds.test else "train (no test views)", "protocol": PROTOCOLS["full"], **report,
               "half_image": {"protocol": PROTOCOLS["half"], **scores_report(half)}, "gaussians": g.n,
               **({"lpips_note": note} if note else {})}
     manifest.claim([run_folder.EVAL])

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from .args import add_define, existing, model_suffixes, positive_int
-from .errors import InputError
+from .errors import InputError, warn
 
 
 def add_parser(sub) -> None:
@@ -129,14 +129,37 @@ def _scene_info(path: Path, defines) -> dict:
 
 
 def _dataset_info(path: Path, resolution: int) -> dict:
+    """A dataset folder: its views, first camera, points and lengths, and every image decoded once (with a progress
+    bar on stderr: a large dataset takes minutes). Lengths, each under its own name: ``camera_spread`` (1.1 x the
+    training cameras' largest distance from their mean: the reference's "extent", what pose errors are fractions
+    of) and ``length_scale`` (what a run's position rates and size rules are fractions of, by the default
+    ``data.extent``: metrics.json's ``extent``); ``extent`` and ``scene_extent``, their earlier names, stay."""
+    from ..config import DataConfig
+    from ..data.camera import intrinsics_problem
     from ..data.dataset import load_dataset, unreadable_images
+    from ..data.pointcloud import DegenerateScale
 
     ds = load_dataset(path, resolution=resolution)
-    unreadable = unreadable_images(ds.views, progress=sys.stderr.isatty())
     cam = ds.train[0].camera
-    return {"dataset": str(path), "layout": ds.layout, "train_views": len(ds.train), "test_views": len(ds.test),
+    info = {"dataset": str(path), "layout": ds.layout, "train_views": len(ds.train), "test_views": len(ds.test),
             "image_size": [cam.width, cam.height], "fx": round(cam.fx, 4), "fy": round(cam.fy, 4),
             "cx": round(cam.cx, 4), "cy": round(cam.cy, 4), "color_space": ds.color_space,
-            "points": 0 if ds.points_xyz is None else int(ds.points_xyz.shape[0]),
-            "extent": round(ds.extent, 6), "scene_extent": round(ds.scene_extent(), 6),
-            "images_checked": len(ds.views), "unreadable_images": unreadable}
+            "points": 0 if ds.points_xyz is None else int(ds.points_xyz.shape[0])}
+    problems = [p for v in ds.views if (p := intrinsics_problem(v.camera)) is not None]
+    if problems:
+        more = f" (and {len(problems) - 1} more views)" if len(problems) > 1 else ""
+        info["camera_problem"] = problems[0] + more
+        warn(f"{path}: {problems[0]}{more}")
+    spread = ds.extent
+    info.update(camera_spread=round(spread, 6), length_scale_rule=DataConfig().extent)
+    try:
+        scale, fallback = ds.scene_scale()
+        info["length_scale"] = round(scale, 6)
+        if fallback:
+            info["length_scale_note"] = fallback
+    except DegenerateScale as e:
+        info["length_scale"] = None
+        info["length_scale_problem"] = str(e)
+    info.update(extent=info["camera_spread"], scene_extent=info["length_scale"])
+    unreadable = unreadable_images(ds.views, progress=True)     # (the bar shows after a few seconds: on stderr)
+    return {**info, "images_checked": len(ds.views), "unreadable_images": unreadable}

@@ -9,8 +9,9 @@ import sys
 from pathlib import Path
 
 from . import train_options
-from .args import add_output, add_viewer_options, existing, positive_int, start_viewer, viewer_config
-from .errors import EXIT_DIVERGED, InputError
+from .args import (add_output, add_viewer_options, check_viewer, existing, positive_int, start_viewer, viewer_config,
+                   viewer_options_given)
+from .errors import EXIT_DIVERGED, InputError, note
 
 
 def add_parser(sub) -> None:
@@ -48,6 +49,10 @@ def run(args) -> int:
     check_output_folder(out)
     cfg, record = _config(args, src, out)
     _check_workers(args, src)
+    if args.view:
+        check_viewer(args)                # (the address and the frame size, before anything is loaded or trained)
+    for flag in [] if args.view else viewer_options_given(args):
+        note(f"{flag} has no effect in this run: it configures the viewer of --view, which this run does not serve")
     watch = (lambda trainer, ds: _training_view(args, trainer, ds, cfg)) if args.view else None
     try:
         with stopping_on_signals() as stop, _farm(args, src, cfg) as farm:
@@ -63,9 +68,14 @@ def run(args) -> int:
     metrics = result.metrics
     summary = {"output": str(out), **metrics["mean"], "gaussians": metrics["gaussians"],
                "training_seconds": metrics["training_seconds"]}
+    if "half_image" in metrics:     # (--exposure: the test views' right halves after a transform fitted on the left)
+        summary["half_image"] = metrics["half_image"]["mean"]
+        note("--exposure: compare half_image (the reference's protocol: a colour transform fitted on each test "
+             "view's left half, the right half scored); psnr, ssim and lpips are of the views as rendered")
     if "poses" in metrics:          # (--pose-opt, data.pose_noise: the training cameras' errors, start and end)
         summary["pose_rotation_error_degrees"] = metrics["poses"]["rotation_error_degrees"]
-        summary["pose_translation_error_of_extent"] = metrics["poses"]["translation_error_of_extent"]
+        # (a fraction of the given training cameras' spread, not of metrics.json's "extent", the length scale)
+        summary["pose_translation_error_of_camera_spread"] = metrics["poses"]["translation_error_of_extent"]
         if "reprojection_error_pixels" in metrics["poses"]:
             summary["pose_reprojection_error_pixels"] = {k: metrics["poses"]["reprojection_error_pixels"][k]
                                                          for k in ("start", "end")}
@@ -129,8 +139,9 @@ def _config(args, src: Path, out: Path):
         record = run_folder.RunRecord.read(out, "nothing to resume (no config.json in the output folder)")
         return train_options.resumed_config(args, record.train, is_scene_file(src), str(out / run_folder.CONFIG)), \
             record
+    cfg = train_options.new_run_config(args, is_scene_file(src))     # (a bad setting first, whatever the folder holds)
     run_folder.check_new_run(out, args.overwrite)
-    return train_options.new_run_config(args, is_scene_file(src)), None
+    return cfg, None
 
 
 def _training_view(args, trainer, ds, cfg):

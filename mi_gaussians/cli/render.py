@@ -6,9 +6,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from ..memory import check_image
+
 from .args import (add_background, add_define, add_model_input, add_output, background, existing, is_model,
                    model_suffixes, non_negative_int, positive_int, sh_degree)
-from .errors import InputError, warn
+from .errors import InputError, note, warn
 
 
 def add_parser(sub) -> None:
@@ -53,12 +55,13 @@ def run(args) -> int:
 
     outputs = _outputs_for(out, args.overwrite)
     cam = Camera.from_json(args.camera)
+    check_image(cam.width, cam.height, args.camera, advice="give the camera a smaller width and height")
     _render_views(args, [(cam.name or "view", cam)], args.color_space, [outputs])
     print(out)
     return 0
 
 
-def _render_views(args, views, color_space: str, out_paths) -> None:
+def _render_views(args, views, color_space: str, out_paths, bg=None) -> None:
     import numpy as np
     from tqdm import tqdm
 
@@ -68,7 +71,7 @@ def _render_views(args, views, color_space: str, out_paths) -> None:
     from ..runs import model_raster_config
 
     g = Gaussians.load(args.input)
-    bg = background(args.background)
+    bg = background(args.background) if bg is None else bg
     cfg = model_raster_config(args.input, args.antialiased, warn=warn)
     for (name, cam), outs in tqdm(list(zip(views, out_paths)), desc="render", unit="view", disable=len(views) < 2):
         out = render(g, cam, background=bg, sh_degree=args.sh_degree, cfg=cfg)
@@ -115,6 +118,8 @@ def _render_scene_file(args, src: Path, out: Path) -> int:
         raise InputError(f"{src}: the scene has no sensor")
     if args.sensor >= len(scene.sensors()):
         raise InputError(f"{src}: sensor index {args.sensor} out of range ({len(scene.sensors())} sensors)")
+    width, height = scene.sensors()[args.sensor].film().crop_size()
+    check_image(width, height, f"{src} (sensor {args.sensor}'s film)", advice="give the film a smaller size")
     img = np.array(mi.render(scene, sensor=args.sensor, spp=args.spp or 0), dtype=np.float32)
     for p in outputs:
         write_image(p, img[..., :4] if img.shape[-1] >= 4 else img[..., :3], "linear")
@@ -130,8 +135,8 @@ def _render_dataset_views(args, out: Path) -> int:
     from ..runs import check_outside_dataset
 
     check_outside_dataset(args.dataset, out)
-    ds = load_dataset(args.dataset, resolution=args.resolution or DataConfig().resolution,
-                      background=background(args.background))
+    resolution, bg = _as_the_run(args)
+    ds = load_dataset(args.dataset, resolution=resolution, background=bg)
     if args.split != "test":
         from ..runs import model_run_cameras
 
@@ -139,6 +144,8 @@ def _render_dataset_views(args, out: Path) -> int:
     views = {"train": ds.train, "test": ds.test, "all": ds.views}[args.split]
     if not views:
         raise InputError(f"{args.dataset}: the {args.split} split is empty")
+    largest = max(views, key=lambda v: v.camera.width * v.camera.height).camera
+    check_image(largest.width, largest.height, args.dataset, advice="render at a larger -r divisor")
     if out.suffix:
         raise InputError(f"{out}: with --dataset, -o names an output folder")
     check_output_folder(out)
@@ -146,6 +153,37 @@ def _render_dataset_views(args, out: Path) -> int:
     _check_new([p for ps in paths for p in ps], args.overwrite)
     out.mkdir(parents=True, exist_ok=True)
     remove_stale_temporary_files(out)
-    _render_views(args, [(v.name, v.camera) for v in views], ds.color_space, paths)
+    _render_views(args, [(v.name, v.camera) for v in views], ds.color_space, paths, bg)
     print(f"{len(views)} views -> {out}")
     return 0
+
+
+def _as_the_run(args) -> tuple[int, tuple]:
+    """The resolution divisor and background of ``render --dataset``: those given, else, for a model in a run folder
+    trained on this dataset, the run's (as ``view`` takes them; said in a note), else the defaults."""
+    from .. import run_folder
+    from ..config import DataConfig
+
+    resolution = args.resolution or DataConfig().resolution
+    bg = background(args.background)
+    folder = Path(args.input).parent
+    if (args.resolution is not None and args.background is not None) or not (folder / run_folder.CONFIG).is_file():
+        return resolution, bg
+    try:
+        record = run_folder.RunRecord.read(folder, "")
+    except ValueError:
+        return resolution, bg
+    if Path(record.dataset).resolve() != Path(args.dataset).resolve():
+        return resolution, bg
+    d = record.train.data
+    taken = []
+    if args.resolution is None and d.resolution != resolution:
+        resolution = d.resolution
+        taken.append(f"-r {d.resolution}")
+    if args.background is None and tuple(d.background) != bg:
+        bg = tuple(float(b) for b in d.background)
+        taken.append(f"--background {' '.join(f'{b:g}' for b in bg)}")
+    if taken:
+        note(f"rendering as the run in {folder} was trained ({', '.join(taken)}; give the options to choose "
+             "otherwise)")
+    return resolution, bg

@@ -233,7 +233,8 @@ def explain(e: SettingError) -> InputError:
 
 def new_run_config(args, scene_file: bool) -> TrainConfig:
     """The settings of a new run: the defaults, then the options given, then ``--set`` (checked: one line naming
-    the setting and its option)."""
+    the setting and its option). A setting given that has no effect in this run is said in a note
+    (:func:`mi_gaussians.setting_effects.inert`)."""
     cfg = TrainConfig()
     chosen = given(args)
     for opt in chosen:
@@ -242,9 +243,42 @@ def new_run_config(args, scene_file: bool) -> TrainConfig:
     keys = [k for opt in chosen if opt.resume is None for k in opt.keys]
     keys += [str(text).partition("=")[0].strip() for text in settings]
     try:
-        return cfg.with_settings(settings).check(scene_file, given=keys)
+        cfg = cfg.with_settings(settings).check(scene_file, given=keys)
     except SettingError as e:
         raise explain(e) from None
+    note_inert(cfg, chosen, args, settings, scene_file)
+    return cfg
+
+
+def _keys_set(opt: Option, value, scene_file: bool) -> list[str]:
+    """The settings an option given with ``value`` sets: its one key, or those of its keys it changes (``-r`` sets
+    data.resolution for a dataset folder, scene.resolution for a scene file)."""
+    if len(opt.keys) == 1:
+        return list(opt.keys)
+    base = TrainConfig()
+    try:
+        changed = opt.apply(base, value, scene_file)
+    except (InputError, SettingError, ValueError):
+        return []
+    return [k for k in opt.keys if setting(changed, k) != setting(base, k)]
+
+
+def note_inert(cfg: TrainConfig, chosen, args, settings, scene_file: bool) -> list[str]:
+    """One note on stderr for each option or ``--set`` setting with no effect in a run of ``cfg``; returns them."""
+    from ..setting_effects import inert
+    from .errors import note
+
+    origin = {}                                   # setting -> how it was given
+    for opt in chosen:
+        for key in _keys_set(opt, getattr(args, opt.dest), scene_file):
+            origin.setdefault(key, f"{opt.name} ({key})")
+    for text in settings:
+        key = str(text).partition("=")[0].strip()
+        origin[key] = f"--set {key}"
+    lines = [f"{origin[key]} has no effect in this run: {why}" for key, why in inert(cfg, list(origin), scene_file)]
+    for line in lines:
+        note(line)
+    return lines
 
 
 def resumed_config(args, run: TrainConfig, scene_file: bool, where: str) -> TrainConfig:

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .args import (add_background, add_model_input, add_viewer_options, background, existing, is_model,
-                   model_suffixes, start_viewer, viewer_config)
+from .args import (add_background, add_model_input, add_viewer_options, background, check_viewer, existing,
+                   is_model, model_suffixes, start_viewer, viewer_config)
 from .errors import InputError, warn
 
 
@@ -42,8 +42,10 @@ def run(args) -> int:
     from ..viewer_entries import default_camera, run_entries
 
     src = existing(args.input)
+    check_viewer(args)                    # (the address and the frame size, before the model is loaded)
     model = src / run_folder.MODEL if src.is_dir() else src
     if src.is_dir() and not model.is_file():
+        _check_not_training(src)
         raise InputError(f"{model}: missing (is {src} an mi-gs optimize output folder?)")
     if not is_model(model):
         raise InputError(f"{src}: expected a model ({', '.join(model_suffixes())}) or an mi-gs optimize output folder")
@@ -78,6 +80,18 @@ def run(args) -> int:
     finally:
         stop_within(viewer, STOP_SECONDS, warn)
     return 0
+
+
+def _check_not_training(folder: Path) -> None:
+    """A run folder whose run is still training has no model yet: said so (not "is it an output folder?")."""
+    from .. import run_folder
+
+    try:
+        run_folder.RunLock(folder).check_free()
+    except run_folder.FolderBusy:
+        raise InputError(f"{folder}: a run is still training in this folder, and its model "
+                         f"({run_folder.MODEL}) is written when it ends: view it then, or watch a run as it trains "
+                         "with mi-gs optimize --view") from None
 
 
 #: The longest wait for the viewer's server to stop after Ctrl-C (seconds)
