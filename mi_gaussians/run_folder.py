@@ -306,11 +306,13 @@ class RunRecord:
     train: TrainConfig                      # its settings
     dataset_fingerprint: str | None = None  # the content of a dataset folder (``data.dataset.fingerprint``)
     references: str | None = None           # the folder of a scene file's path-traced references (absolute)
+    run_id: str | None = None               # the run's identity, also in each of its checkpoints (none: a run of an
+                                            # earlier version)
 
     def to_dict(self) -> dict:
         d = {"dataset": self.dataset}
         d.update({k: v for k, v in (("dataset_fingerprint", self.dataset_fingerprint),
-                                    ("references", self.references)) if v is not None})
+                                    ("references", self.references), ("run_id", self.run_id)) if v is not None})
         return {**d, "train": self.train.to_dict()}
 
     def write(self, out: Path) -> None:
@@ -335,18 +337,19 @@ class RunRecord:
                              "mi-gs optimize or was edited")
         if not isinstance(saved.get("dataset"), str) or not saved["dataset"]:
             raise ValueError(f"{path}: the run record does not name its dataset (\"dataset\")")
-        unknown = sorted(set(saved) - {"dataset", "dataset_fingerprint", "references", "train"})
+        unknown = sorted(set(saved) - {"dataset", "dataset_fingerprint", "references", "run_id", "train"})
         if unknown:
             raise ValueError(f"{path}: key {unknown[0]!r}: not a key of an mi-gs run record (dataset, "
-                             "dataset_fingerprint, references, train)")
-        for key in ("dataset_fingerprint", "references"):
+                             "dataset_fingerprint, references, run_id, train)")
+        for key in ("dataset_fingerprint", "references", "run_id"):
             if not isinstance(saved.get(key), (str, type(None))) or saved.get(key) == "":
                 raise ValueError(f"{path}: key {key!r}: expected a string, got {saved[key]!r}")
         try:
             train = TrainConfig.from_dict(saved["train"])
         except SettingError as e:
             raise ValueError(f"{path}: key {'train.' + e.key!r}: {e.problem}") from None
-        return cls(saved["dataset"], train, saved.get("dataset_fingerprint"), saved.get("references"))
+        return cls(saved["dataset"], train, saved.get("dataset_fingerprint"), saved.get("references"),
+                   saved.get("run_id"))
 
     @property
     def references_key(self) -> str | None:

@@ -204,7 +204,8 @@ def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cac
         write_cameras(out / CAMERAS, ds)
         try:
             metrics = trainer.run(resume=record is not None, fingerprint=digest,
-                                  monitor=None if watcher is None else watcher.training_monitor)
+                                  monitor=None if watcher is None else watcher.training_monitor,
+                                  run_id=None if record is None else record.run_id)
         except TrainingStopped as e:
             raise Stopped(e.signum, e.step) from None
         if ds.layout == "mitsuba":

@@ -87,3 +87,38 @@ def missing_arrays(sections: dict[str, dict[str, np.ndarray]], meta: dict | None
         out += [f"{section}/value" for section, on in learned.items()
                 if on and "value" not in sections.get(section, {})]
     return out
+
+
+#: Settings a resumed run may change (``mi-gs optimize --resume --iterations N`` and the like): everything else
+#: belongs to the run's identity. (tests/test_divergence_guard.py checks that the command line's resumable options
+#: stay inside this set.)
+RESUMABLE = ("optim.iterations", "checkpoint_every", "eval_every", "save_iterations")
+
+
+def check_identity(path: Path, meta: dict, run_id: str | None, cfg, config_path: Path) -> None:
+    """ValueError (one line naming ``path``) when the checkpoint was written by another run than the one recorded in
+    ``config_path`` (identity ``run_id`` and settings ``cfg``): its run identity differs, or, where either side has
+    none (a run of an earlier version), a setting outside :data:`RESUMABLE` differs."""
+    from ..config import TrainConfig, setting_items
+
+    theirs = meta.get("run_id")
+    if run_id and theirs:
+        if theirs != run_id:
+            raise ValueError(f"{path}: the checkpoint belongs to another run (run {theirs[:12]}, while "
+                             f"{config_path} records run {run_id[:12]}): was it copied from another output folder? "
+                             "resume that run in its own folder, or start a new one")
+        return
+    saved = meta.get("config")
+    if not isinstance(saved, dict):
+        return                                   # (a checkpoint of the first versions: nothing to compare with)
+    try:
+        old = dict(setting_items(TrainConfig.from_dict(saved)))
+    except Exception as e:                       # (settings no version of mi-gs wrote)
+        raise ValueError(f"{path}: the checkpoint's settings cannot be read ({e}); it is not this run's") from None
+    now = dict(setting_items(cfg))
+    differ = [k for k in sorted(set(old) | set(now)) if k not in RESUMABLE and old.get(k) != now.get(k)]
+    if differ:
+        k = differ[0]
+        raise ValueError(f"{path}: the checkpoint was written with other settings than {config_path} records "
+                         f"({k}: {old.get(k)!r} in the checkpoint, {now.get(k)!r} in the record"
+                         f"{f', and {len(differ) - 1} more' if len(differ) > 1 else ''}): it is another run's")

@@ -102,6 +102,7 @@ class Trainer:
         self.history = History()
         self.step = 0
         self.resumed_from: int | None = None    # the checkpoint's iteration, when run(resume=True) continued one
+        self.run_id: str | None = None          # the run's identity (config.json and every checkpoint: run())
         self.stop_signal: int | None = None     # set (e.g. by a signal handler) to stop after the iteration running
         self.elapsed = 0.0        # training seconds (evaluation excluded)
         self.bg_rng = np.random.default_rng(cfg.seed + 1)
@@ -212,7 +213,7 @@ class Trainer:
                     raise TrainingDiverged(f"{name} {k!r} became non-finite by iteration {self.step}; the last good "
                                            f"checkpoint ({self.out / CHECKPOINT}) is kept")
         self.loop.close(self.elapsed)
-        meta = {"step": self.step, "refine_pending": self._refine_at, "elapsed": self.elapsed,
+        meta = {"step": self.step, "run_id": self.run_id, "refine_pending": self._refine_at, "elapsed": self.elapsed,
                 "history": self.history.to_dict(), "loop": self.loop.to_dict(),
                 "sampler": self.sampler.state(), "bg_rng": self.bg_rng.bit_generator.state,
                 "strategy": strategy_meta, "config": self.cfg.to_dict()}
@@ -221,6 +222,8 @@ class Trainer:
     def load_checkpoint(self) -> None:
         path = self.out / CHECKPOINT
         sections, meta = checkpoint.read(path)
+        checkpoint.check_identity(path, meta, self.run_id, self.cfg, self.out / run_folder.CONFIG)
+        self.run_id = self.run_id or meta.get("run_id")
         try:
             self._rows = None
             self.params = GaussianAdam(Gaussians.from_numpy(**sections.get("param", {})), self.cfg.optim, self.extent)
@@ -484,20 +487,26 @@ class Trainer:
                                    color_space=self.ds.color_space)
         return summarize(scores)["psnr"]
 
-    def run(self, resume: bool = False, fingerprint: str | None = None, monitor=None) -> dict:
+    def run(self, resume: bool = False, fingerprint: str | None = None, monitor=None,
+            run_id: str | None = None) -> dict:
         """Train to ``cfg.optim.iterations`` (from the checkpoint with ``resume``) and write the outputs;
         ``fingerprint``: of the dataset's content, for the run's record; ``monitor``: called with the trainer
         after every iteration (e.g. a viewer; it may read the model, and must not change it), outside the
-        training time."""
+        training time; ``run_id``: the identity config.json records for the run being resumed (a checkpoint of
+        another run is refused: :func:`.checkpoint.check_identity`), none for a new run (one is made)."""
+        import uuid
+
         from tqdm import tqdm
 
         cfg = self.cfg
         self.out.mkdir(parents=True, exist_ok=True)
+        self.run_id = run_id
         if resume:
             self.load_checkpoint()
             self.resumed_from = self.step
+        self.run_id = self.run_id or uuid.uuid4().hex
         refs = None if self.ds.references is None else str(Path(self.ds.references).resolve())
-        run_folder.RunRecord(str(Path(self.ds.root).resolve()), cfg, fingerprint, refs).write(self.out)
+        run_folder.RunRecord(str(Path(self.ds.root).resolve()), cfg, fingerprint, refs, self.run_id).write(self.out)
         total = cfg.optim.iterations
         self._bar = tqdm(total=total, initial=self.step, disable=not self.progress, unit="it", dynamic_ncols=True)
         self._ema = None
