@@ -102,8 +102,8 @@ def scene_scale(cameras, points: np.ndarray | None, rule: str = config.DataConfi
         value = depth if rule == "depth" else max(spread, depth)
     if not (np.isfinite(value) and value > 0):
         cams_said = f"{len(cams)} training camera{'s' if len(cams) != 1 else ''}"
-        where = ("they stand at one point (spread 0)" if np.isfinite(spread) and spread == 0 else
-                 f"their spread is {spread}")
+        where = ("so no spread" if len(cams) == 1 else "all at one point (spread 0)" if spread == 0 else
+                 f"spread {spread}")
         seen = "" if rule == "cameras" else (f", and {fallback.partition(', so')[0]}" if fallback else "")
         advice = ("measure it by the depth the cameras see the points at (--set data.extent=depth), or train on more "
                   "views (--test-every)" if rule == "cameras" else
