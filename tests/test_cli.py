@@ -38,8 +38,9 @@ def checkpoint_step(out: Path) -> int:
         return 0
 
 
-#: What a run says before training as it goes (where its initial points come from), not part of an error.
-PROGRESS_LINES = ("initial points: ", "triangulation [", "note: no densification")     # (and notes)
+#: What a run says before training as it goes (where its initial points come from) and its notes (a setting with no
+#: effect, a fallback, no densification in the run), not part of an error.
+PROGRESS_LINES = ("initial points: ", "triangulation [", "note: ")
 
 
 def message_lines(stderr: str) -> list[str]:
