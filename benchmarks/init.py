@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -35,31 +34,9 @@ INITS = ("auto", "cube", "frustum")
 
 def room_blender(out: Path, cache: Path) -> Path:
     """Write scenes/room.xml's views as a Blender-layout dataset in ``out`` (once; references cached in ``cache``)."""
-    if (out / "transforms_test.json").is_file():
-        return out
-    import mitsuba as mi
+    from scene_blender import write_dataset
 
-    mi.set_variant("llvm_ad_rgb")
-    from mi_gaussians.config import SceneConfig
-    from mi_gaussians.data.camera import GL_TO_CV
-    from mi_gaussians.data.scene_dataset import load_scene_dataset
-    from mi_gaussians.imwrite import write_png
-
-    ds = load_scene_dataset(ROOT / "scenes" / "room.xml", SceneConfig(init="random", init_points=1),
-                            cache_root=cache, log=lambda s: print(s, file=sys.stderr))
-    for split, views in (("train", ds.train), ("test", ds.test)):
-        frames = []
-        (out / split).mkdir(parents=True, exist_ok=True)
-        for v in views:
-            c = v.camera
-            if abs(c.fx - c.fy) > 1e-6 * c.fx or abs(c.cx - c.width / 2) > 1e-6 or abs(c.cy - c.height / 2) > 1e-6:
-                raise SystemExit(f"camera {c.name}: the Blender layout needs square pixels and a centred image")
-            write_png(out / split / f"{v.name}.png", np.clip(v.load_image(), 0, 1))
-            c2w = np.linalg.inv(c.world_to_camera) @ GL_TO_CV
-            frames.append({"file_path": f"./{split}/{v.name}", "transform_matrix": c2w.tolist()})
-        fov = 2 * math.atan(views[0].camera.width / (2 * views[0].camera.fx))
-        (out / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": fov, "frames": frames}, indent=1))
-    return out
+    return write_dataset(ROOT / "scenes" / "room.xml", out, cache, alpha=False)
 
 
 def dataset(name: str, root: Path, cache: Path) -> tuple[Path, list[str]]:

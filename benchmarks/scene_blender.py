@@ -1,0 +1,91 @@
+"""A Mitsuba scene's camera rig written as a Blender-layout (NeRF-synthetic) dataset, so that it trains like any
+Blender capture: without the scene's shapes, from triangulated or random points.
+
+    python benchmarks/scene_blender.py objects --rig sphere --size 200 --views 100 --test-views 20 \
+        --out /tmp/objects_sphere                   # an object seen from every side, RGBA PNGs (issue 52's scene)
+    python benchmarks/scene_blender.py room --out /tmp/room_blender --no-alpha
+
+The references are path-traced by ``mi-gs optimize``'s own code (``load_scene_dataset``: the rig, seeds and cache of
+``scenes/<name>.xml``; ``--cache`` is shared with other benchmarks). Images are 8-bit sRGB PNGs; with alpha (the
+default) they hold straight colour and Mitsuba's coverage alpha, as NeRF-synthetic's do (the scene must hide its
+emitters for the background to be empty), without it the references composited over black.
+``transforms_train.json`` / ``transforms_test.json`` hold OpenGL camera-to-world matrices and ``camera_angle_x``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def write_dataset(scene: Path, out: Path, cache: Path, scene_cfg=None, alpha: bool = True) -> Path:
+    """Write ``scene``'s training and held-out views as a Blender-layout dataset in ``out`` (once: an existing
+    ``transforms_test.json`` means it is written already). ``scene_cfg``: the rig (a ``SceneConfig``)."""
+    if (out / "transforms_test.json").is_file():
+        return out
+    import mitsuba as mi
+
+    mi.set_variant("llvm_ad_rgb")
+    from PIL import Image
+
+    from mi_gaussians.config import SceneConfig
+    from mi_gaussians.data.camera import GL_TO_CV
+    from mi_gaussians.data.images import read_image
+    from mi_gaussians.data.scene_dataset import load_scene_dataset
+    from mi_gaussians.imwrite import linear_to_srgb, to_uint8
+
+    cfg = dataclasses.replace(scene_cfg or SceneConfig(), init="random", init_points=1)
+    ds = load_scene_dataset(scene, cfg, cache_root=cache, log=lambda s: print(s, file=sys.stderr))
+    for split, views in (("train", ds.train), ("test", ds.test)):
+        frames = []
+        (out / split).mkdir(parents=True, exist_ok=True)
+        for v in views:
+            c = v.camera
+            if abs(c.fx - c.fy) > 1e-6 * c.fx or abs(c.cx - c.width / 2) > 1e-6 or abs(c.cy - c.height / 2) > 1e-6:
+                raise SystemExit(f"camera {c.name}: the Blender layout needs square pixels and a centred image")
+            ref = read_image(v.image_path)                  # linear RGB, premultiplied by Mitsuba's alpha
+            a = ref[..., 3:4] if ref.shape[2] == 4 else np.ones_like(ref[..., :1])
+            if alpha:
+                straight = np.where(a > 0, ref[..., :3] / np.maximum(a, 1e-8), 0.0)
+                img = np.concatenate([linear_to_srgb(np.clip(straight, 0, 1)), a], axis=2)
+            else:
+                img = linear_to_srgb(np.clip(ref[..., :3], 0, 1))
+            Image.fromarray(to_uint8(np.clip(img, 0, 1))).save(out / split / f"{v.name}.png")
+            c2w = np.linalg.inv(c.world_to_camera) @ GL_TO_CV
+            frames.append({"file_path": f"./{split}/{v.name}", "transform_matrix": c2w.tolist()})
+        fov = 2 * math.atan(views[0].camera.width / (2 * views[0].camera.fx))
+        (out / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": fov, "frames": frames}, indent=1))
+    return out
+
+
+def main(argv=None) -> int:
+    from mi_gaussians.config import SceneConfig
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("name", help="scenes/<name>.xml")
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--rig", default="auto", help="the scene rig (SceneConfig.rig): auto, sensors, hemisphere, sphere")
+    ap.add_argument("--size", type=int, default=None, help="film width and height in pixels (default: the scene's)")
+    ap.add_argument("--views", type=int, default=SceneConfig().views)
+    ap.add_argument("--test-views", type=int, default=SceneConfig().test_views)
+    ap.add_argument("--spp", type=int, default=None)
+    ap.add_argument("--no-alpha", action="store_true", help="RGB PNGs composited over black")
+    ap.add_argument("--cache", type=Path, default=Path("/tmp/mi_gs_scene_blender/references"))
+    args = ap.parse_args(argv)
+    cfg = SceneConfig(rig=args.rig, views=args.views, test_views=args.test_views, spp=args.spp,
+                      resolution=None if args.size is None else (args.size, args.size))
+    write_dataset(ROOT / "scenes" / f"{args.name}.xml", args.out, args.cache, cfg, alpha=not args.no_alpha)
+    print(args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
