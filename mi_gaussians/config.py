@@ -44,6 +44,9 @@ SSIM_PADDINGS = ("same", "valid")
 #: ``RasterConfig.footprint``: the tiles a Gaussian is blended in (raster/footprint.py): 'ellipse', those its
 #: alpha >= alpha_min ellipse reaches; 'box', every tile of that ellipse's bounding box. Same image and gradients.
 FOOTPRINTS = ("ellipse", "box")
+#: ``OptimConfig.coarse_to_fine``: 'off' (every iteration at full resolution, the reference), 'spectrum'
+#: (DashGaussian's schedule from the images' Fourier spectra: optim/resolution.py).
+COARSE_TO_FINE = ("off", "spectrum")
 #: ``--depth-weight W`` decays from W to W / DEPTH_WEIGHT_DECAY (the 2024 reference's 1.0 to 0.01).
 DEPTH_WEIGHT_DECAY = 100.0
 
@@ -137,6 +140,11 @@ class OptimConfig:
     sh_degree: int = 3                       # maximum SH degree
     sh_increase_interval: int = 1000         # the active degree goes up by one every this many iterations
     random_background: bool = False          # a random background colour per iteration
+    coarse_to_fine: str = "off"              # COARSE_TO_FINE: render and fit the training images at a reduced
+                                             # resolution early, rising to full by coarse_until ('spectrum':
+                                             # DashGaussian's schedule from the images' spectra)
+    coarse_until: int = 0                    # ... the iteration where it reaches full resolution (0: the end of
+                                             # densification, densify.densify_until_iter, as DashGaussian)
     alpha_weight: float = 0.0                # images with alpha (an object on an empty background): loss +=
                                              # alpha_weight * L1(rendered alpha, the image's alpha), so that a
                                              # Gaussian of the background's colour in empty space is not free
@@ -404,7 +412,7 @@ RULES: dict[str, "Range | tuple[str, ...]"] = {
                                                  "scaling_lr", "rotation_lr", "exposure_lr_init", "exposure_lr_final",
                                                  "exposure_grid_lr")},
     "optim.pose_opt_lr": Range(0, 0.1),
-    "optim.exposure": EXPOSURES, "optim.ssim_padding": SSIM_PADDINGS, "optim.exposure_grid": Range(2, counts=(3, 3)),
+    "optim.coarse_to_fine": COARSE_TO_FINE, "optim.exposure": EXPOSURES, "optim.ssim_padding": SSIM_PADDINGS, "optim.exposure_grid": Range(2, counts=(3, 3)),
     "densify.densification_interval": _COUNT, "densify.split_count": _COUNT,
     "densify.split_scale_divisor": _POSITIVE, "densify.min_opacity": Range(0, 1, open_high=True),
     "densify.reset_opacity": _OPEN_FRACTION,

@@ -63,7 +63,7 @@ def test_frozen_training_with_the_alpha_loss_equals_traced_training(scene, one_t
     cfg = _with_alpha_weight(small_config(300), 0.5)
     frozen = _train(scene, cfg, 110)
     traced = _train(scene, dataclasses.replace(cfg, freeze=False), 110)
-    assert frozen.transparency is not None
+    assert frozen.views.transparency is not None
     assert_same_training(frozen, traced)
 
 
@@ -91,5 +91,5 @@ def test_it_changes_training_only_where_the_images_have_alpha(scene, tmp_path, o
             dest.write_bytes(p.read_bytes())
     a = _train_ds(load(opaque, cfg), _with_alpha_weight(cfg, 0.5), 40)
     b = _train_ds(load(opaque, cfg), cfg, 40)
-    assert a.transparency is None
+    assert a.views.transparency is None
     assert_same_training(a, b)

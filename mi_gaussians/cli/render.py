@@ -129,7 +129,6 @@ def _render_scene_file(args, src: Path, out: Path) -> int:
 
 def _render_dataset_views(args, out: Path) -> int:
     """A model rendered from the views of a dataset folder into the folder ``out`` (EXR and PNG per view)."""
-    from ..config import DataConfig
     from ..data.dataset import load_dataset
     from ..io_utils import check_output_folder, remove_stale_temporary_files
     from ..runs import check_outside_dataset

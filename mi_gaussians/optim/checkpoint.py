@@ -16,6 +16,15 @@ FINITE = ("param", "adam", "exposure", "pose")
 
 
 def write(path: Path, sections: dict[str, dict[str, np.ndarray]], meta: dict) -> None:
+    """Write a checkpoint atomically; :class:`.guard.TrainingDiverged` (and nothing written) when an array of a
+    :data:`FINITE` section holds a non-finite value: no checkpoint does."""
+    from .guard import TrainingDiverged
+
+    for name in FINITE:
+        for k, v in sections.get(name, {}).items():
+            if np.issubdtype(np.asarray(v).dtype, np.floating) and not np.all(np.isfinite(v)):
+                raise TrainingDiverged(f"{name} {k!r} became non-finite by iteration {meta.get('step')}; the last "
+                                       f"good checkpoint ({path}) is kept")
     arrays = {f"{section}/{k}": v for section, values in sections.items() for k, v in values.items()}
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode("utf-8"), dtype=np.uint8)
     with atomic_path(path, suffix=".npz") as tmp:

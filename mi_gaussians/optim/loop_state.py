@@ -105,3 +105,26 @@ class ViewSampler:
     def restore(self, s: dict) -> None:
         self.rng.bit_generator.state = s["rng"]
         self.stack = list(s["stack"])
+
+
+class TrainingStopped(Exception):
+    """The run was asked to stop (``Trainer.stop_signal``, e.g. by SIGTERM): it finished its iteration and wrote
+    a checkpoint at ``step``, from which ``--resume`` continues."""
+
+    def __init__(self, signum: int, step: int):
+        self.signum, self.step = signum, step
+        super().__init__(f"stopped at iteration {step} (signal {signum})")
+
+
+@dataclass
+class Pending:
+    """A queued frozen iteration: its view, the random streams' states before it (to replay it) and its device
+    results (loss, ok flag, the instance list's length, the instances blended)."""
+
+    step: int
+    view: int
+    host: tuple
+    loss: object
+    ok: object
+    instances: object
+    blended: object

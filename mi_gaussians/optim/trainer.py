@@ -1,17 +1,7 @@
 """The training loop: view -> render -> L1 + D-SSIM -> dr.backward -> statistics -> Adam step -> (evaluation, saves)
 -> the densification strategy's refinement.
 
-Outputs (all written atomically into ``out_dir``)::
-
-    config.json                  the resolved TrainConfig (and the dataset path)
-    checkpoints/ckpt.npz         the latest checkpoint (parameters, Adam moments and step counts, densification
-                                 statistics, random-number-generator states, history): ``--resume`` continues from it
-    point_cloud.ply              the final model (3DGS layout); point_cloud_<iter>.ply at cfg.save_iterations
-    renders/<view>.exr|.png      test-view renders (EXR linear, PNG display-encoded)
-    compare/<view>.png           reference | render | error
-    metrics.json                 PSNR / SSIM (LPIPS when available) per test view and mean, Gaussians, the
-                                 scene extent (data.extent), time
-    curves.png, history.json     loss, test PSNR and number of Gaussians against the iteration
+Outputs: :mod:`.outputs` (and ``docs/reference/run-folder.md``); checkpoints: :mod:`.checkpoint`.
 
 Iterations are frozen (:mod:`.train_step`: recorded once with ``dr.freeze``, replayed, nothing read back) and queued;
 :meth:`Trainer._resolve` reads their losses and flags every :data:`SYNC_EVERY` iterations and before evaluations,
@@ -27,10 +17,8 @@ before every checkpoint), stops the run with :class:`TrainingDiverged`; the last
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import drjit as dr
@@ -39,20 +27,20 @@ import numpy as np
 
 from ..config import TrainConfig
 from ..data.dataset import Dataset
-from ..drjit_utils import exact_float_math, owned_tensor
-from ..evaluate import PROTOCOLS, depth_error, evaluate_views, scores_report, summarize
+from ..drjit_utils import exact_float_math
+from ..evaluate import evaluate_views, summarize
 from ..model.gaussians import Gaussians
-from ..raster.projection import ViewParams
 from ..raster.rasterize import render
-from .. import report, run_folder
+from .. import run_folder
 from . import checkpoint, guard
 from .adam import GaussianAdam
-from .compensation import make_compensation, save_compensation
+from .compensation import make_compensation
 from .guard import TrainingDiverged  # noqa: F401  (raised here; importers take it from this module too)
-from .pose import PoseDeltas, pivot_depths, save_refined_cameras
-from .loop_state import History, LoopStats, ViewSampler
+from .pose import PoseDeltas, pivot_depths
+from .loop_state import History, LoopStats, Pending, TrainingStopped, ViewSampler  # noqa: F401  (TrainingStopped:
+# raised here, and importers take it from this module)
 from .strategies import initial_gaussians, make_strategy
-from .losses import inverse_depth_target
+from .targets import TrainingViews
 from .schedules import depth_weight, position_lr, sh_degree_at
 from .train_step import (StepInputs, TrainStep, capacity_for, composite_target, pad_rows, row_class, training_loss,
                          trim_rows)
@@ -62,29 +50,6 @@ CHECKPOINT = Path(run_folder.CHECKPOINT)
 # Frozen iterations queued between two reads of their losses and flags (progress bar, history, overflow, NaN). More
 # keeps the device busier; fewer wastes fewer iterations when one overflows its instance capacity and is replayed.
 SYNC_EVERY = 25
-
-
-class TrainingStopped(Exception):
-    """The run was asked to stop (:attr:`Trainer.stop_signal`, e.g. by SIGTERM): it finished its iteration and wrote
-    a checkpoint at ``step``, from which ``--resume`` continues."""
-
-    def __init__(self, signum: int, step: int):
-        self.signum, self.step = signum, step
-        super().__init__(f"stopped at iteration {step} (signal {signum})")
-
-
-@dataclass
-class _Pending:
-    """A queued frozen iteration: its view, the random streams' states before it (to replay it) and its device
-    results."""
-
-    step: int
-    view: int
-    host: tuple
-    loss: "mi.Float"
-    ok: "mi.Bool"
-    instances: "mi.UInt32"
-    blended: "mi.UInt32"
 
 
 class Trainer:
@@ -107,31 +72,8 @@ class Trainer:
         self.elapsed = 0.0        # training seconds (evaluation excluded)
         self.bg_rng = np.random.default_rng(cfg.seed + 1)
         self.sampler = ViewSampler(len(ds.train), cfg.seed)
-        # Targets are decoded once and kept as Dr.Jit tensors (copied into Dr.Jit-owned memory). With a random
-        # background, RGBA targets are re-composited over the same random colour each iteration (the reference
-        # keeps them composited over the fixed one), so we also keep the coverage (1 - alpha).
-        self.targets, brightest = [], 0.0
-        for v in ds.train:
-            image = v.load_image()
-            brightest = max(brightest, float(np.max(image, initial=0.0)))
-            self.targets.append(owned_tensor(image))
-        if brightest <= 1e-6:
-            raise ValueError(f"{ds.root}: every training image is black: there is nothing to fit (a scene whose "
-                             "lights are missing, hidden or turned off by its -D values?)")
-        self.depth_targets = None
-        if cfg.optim.depth_weight > 0:
-            depths = [v.load_depth() for v in ds.train]
-            if any(d is None for d in depths):
-                raise ValueError(f"{ds.root}: depth supervision (--depth-weight) needs the exact depth of a Mitsuba "
-                                 "scene (.xml); this dataset has none")
-            self.depth_targets = [owned_tensor(inverse_depth_target(d)) for d in depths]
-        # 1 - alpha of each training image: to re-composite it over a random background, and for the alpha loss
-        # (only where an image has alpha: on opaque images it would ask for nothing but full coverage)
-        self.transparency = None
-        if cfg.optim.random_background or cfg.optim.alpha_weight > 0:
-            alphas = [v.load_alpha() for v in ds.train]
-            if cfg.optim.random_background or any(float(np.min(a, initial=1.0)) < 1.0 for a in alphas):
-                self.transparency = [owned_tensor(1.0 - a[..., None]) for a in alphas]
+        # what each step takes of each training view: its camera and target, at the coarse-to-fine schedule's scale
+        self.views = TrainingViews(ds, cfg)
         self.strategy = make_strategy(cfg, self.extent, white_background=self.background == (1.0, 1.0, 1.0))
         self.params = GaussianAdam(initial_gaussians(ds, cfg.optim.sh_degree, self.strategy, seed=cfg.seed + 3),
                                    cfg.optim, self.extent)
@@ -155,9 +97,8 @@ class Trainer:
         self._refine_at: int | None = None  # an iteration whose refinement is still to run (see _refine)
         self.loop = LoopStats()            # time split, recordings, overflows, syncs (a refinement's own not counted)
         self._peak = 0                     # most instances a committed frozen step needed since the last traced one
-        self._pending: list[_Pending] = []
+        self._pending: list[Pending] = []
         self._valid = None                 # the last queued step's ok flag (chained into the next)
-        self._views: list = [None] * len(ds.train)   # ViewParams per training view, built on first use
         self._finite_at = 0                 # the last iteration whose trained quantities were checked finite
         # while frozen steps run on the model padded to its size class (train_step.py, "Size classes"): its own rows
         self._rows: int | None = None
@@ -207,11 +148,6 @@ class Trainer:
             sections["exposure"] = self.exposure.export()
         if self.poses is not None:
             sections["pose"] = self.poses.export()
-        for name, arrays in sections.items():     # (the last gate: no checkpoint holds a non-finite value)
-            for k, v in arrays.items():
-                if np.issubdtype(np.asarray(v).dtype, np.floating) and not np.all(np.isfinite(v)):
-                    raise TrainingDiverged(f"{name} {k!r} became non-finite by iteration {self.step}; the last good "
-                                           f"checkpoint ({self.out / CHECKPOINT}) is kept")
         self.loop.close(self.elapsed)
         meta = {"step": self.step, "run_id": self.run_id, "refine_pending": self._refine_at, "elapsed": self.elapsed,
                 "history": self.history.to_dict(), "loop": self.loop.to_dict(),
@@ -250,10 +186,10 @@ class Trainer:
         self.bg_rng.bit_generator.state = meta["bg_rng"]
 
     def target(self, idx: int, bg) -> "mi.TensorXf":
-        """Training view ``idx``'s image over background ``bg`` (only RGBA images change with the background)."""
-        transparency = None if self.transparency is None or not self.cfg.optim.random_background \
-            else self.transparency[idx]
-        return composite_target(self.targets[idx], transparency, bg, self.background)
+        """Training view ``idx``'s image over background ``bg`` (only RGBA images change with the background), at the
+        current coarse-to-fine scale."""
+        transparency = self.views.transparency_of(idx) if self.cfg.optim.random_background else None
+        return composite_target(self.views.target(idx), transparency, bg, self.background)
 
     # ------------------------------------------------------------------ one iteration
     def _draw(self) -> tuple[int, tuple]:
@@ -274,16 +210,16 @@ class Trainer:
         g = self.params.gaussians
         degree = sh_degree_at(step, g.sh_degree, o.sh_increase_interval)
         idx, bg = self._draw()
-        camera = self.ds.train[idx].camera if self.poses is None else self.poses.view(self._view_params(idx), idx)
+        views = self.views
+        views.set_scale(views.scale_at(step))
+        camera = views.camera(idx) if self.poses is None else self.poses.view(views.view(idx), idx)
         out = render(g, camera, background=bg, sh_degree=degree, cfg=cfg.raster)
         self.strategy.step_pre_backward(self.params, self.strategy_state, step, out,
                                         collect=self.strategy.updates_state_at(step))
-        depth = self.depth_targets is not None
-        loss = training_loss(out, self.target(idx, bg), o.lambda_dssim, self.strategy, self.params,
-                             self.depth_targets[idx] if depth else None,
-                             dr.opaque(mi.Float, depth_weight(step, o)) if depth else None, self.exposure,
-                             dr.opaque(mi.UInt32, idx), o.ssim_padding,
-                             None if self.transparency is None else self.transparency[idx], o.alpha_weight)
+        depth = views.depth_of(idx)
+        loss = training_loss(out, self.target(idx, bg), o.lambda_dssim, self.strategy, self.params, depth,
+                             None if depth is None else dr.opaque(mi.Float, depth_weight(step, o)), self.exposure,
+                             dr.opaque(mi.UInt32, idx), o.ssim_padding, views.transparency_of(idx), o.alpha_weight)
         # (a view where nothing is visible gives a loss that does not depend on the parameters)
         dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
         value = float(loss[0])
@@ -348,24 +284,20 @@ class Trainer:
         n = self.n_gaussians
         return row_class(n, self.cfg.row_classes) if self.strategy.row_padding else n
 
-    def _view_params(self, idx: int) -> ViewParams:
-        if self._views[idx] is None:
-            self._views[idx] = ViewParams.from_camera(self.ds.train[idx].camera)
-        return self._views[idx]
-
     def _dispatch(self, step: int) -> None:
         """Queue frozen iteration ``step`` (no synchronization); its results are read by :meth:`_resolve`."""
         cfg = self.cfg
         host = (self.sampler.state(), self.bg_rng.bit_generator.state)
         idx, bg = self._draw()
-        inputs = StepInputs(target=self.targets[idx],
-                            transparency=None if self.transparency is None else self.transparency[idx],
-                            view=self._view_params(idx), background=tuple(dr.opaque(mi.Float, b) for b in bg),
+        views = self.views
+        views.set_scale(views.scale_at(step))
+        depth = views.depth_of(idx)
+        inputs = StepInputs(target=views.target(idx), transparency=views.transparency_of(idx), view=views.view(idx),
+                            background=tuple(dr.opaque(mi.Float, b) for b in bg),
                             means_lr=dr.opaque(mi.Float, position_lr(step, cfg.optim, self.extent)),
                             step=dr.opaque(mi.UInt32, step),
-                            depth_target=None if self.depth_targets is None else self.depth_targets[idx],
-                            depth_weight=None if self.depth_targets is None
-                            else dr.opaque(mi.Float, depth_weight(step, cfg.optim)),
+                            depth_target=depth,
+                            depth_weight=None if depth is None else dr.opaque(mi.Float, depth_weight(step, cfg.optim)),
                             view_index=None if self.exposure is None and self.poses is None
                             else dr.opaque(mi.UInt32, idx),
                             exposure_lr=None if self.exposure is None
@@ -380,7 +312,7 @@ class Trainer:
                                               self.strategy.updates_state_at(step), self.capacity, self.exposure,
                                               self.poses)
         self._valid = ok
-        self._pending.append(_Pending(step, idx, host, loss, ok, instances, blended))
+        self._pending.append(Pending(step, idx, host, loss, ok, instances, blended))
         self.step = step
 
     def _resolve(self) -> bool:
@@ -543,31 +475,6 @@ class Trainer:
             self._bar = None
         return self.finish()
 
-    def _pose_report(self) -> dict:
-        """The training cameras' mean errors against the given ones (``given_cameras``), as the run started and as it
-        ends (refined: ``--pose-opt``), and the refined cameras written beside the model."""
-        from ..data.pointcloud import camera_extent
-        from ..data.pose_noise import pose_errors, reprojection_error, reprojection_points
-
-        extent = camera_extent(np.stack([c.center for c in self.given_cameras]))[1]    # (the given cameras' extent)
-        start = [v.camera for v in self.ds.train]
-        end = start if self.poses is None else self.poses.cameras(start)
-        if self.poses is not None:
-            save_refined_cameras(self.out, end)
-        (r0, d0), (r1, d1) = pose_errors(start, self.given_cameras), pose_errors(end, self.given_cameras)
-        out = {"against": "the training cameras as the dataset gives them", "optimized": self.poses is not None,
-               "rotation_error_degrees": {"start": round(r0, 6), "end": round(r1, 6)},
-               "translation_error": {"start": round(d0, 8), "end": round(d1, 8)},
-               "translation_error_of_extent": {"start": round(d0 / extent, 8), "end": round(d1 / extent, 8)}}
-        points = self.ds.points_xyz      # (the run's initial points, in the given cameras' frame: the scene's points)
-        used = reprojection_points(points)       # (taken once, for both ends)
-        p0, p1 = (reprojection_error(c, self.given_cameras, used) for c in (start, end))
-        if p0 is not None and p1 is not None:
-            subset = "" if len(used) == len(points) else f" (an evenly strided {len(used):,} of them)"
-            out["reprojection_error_pixels"] = {"start": round(p0, 6), "end": round(p1, 6),
-                                                "of": f"the run's {len(points):,} initial points{subset}"}
-        return out
-
     def _drain(self) -> None:
         """Commit every queued iteration (training time; an overflow rewinds and empties the queue)."""
         t0 = time.perf_counter()
@@ -584,42 +491,9 @@ class Trainer:
             raise TrainingStopped(self.stop_signal, self.step)
 
     def finish(self) -> dict:
-        """Final outputs: PLY, test renders and comparisons, metrics.json, curves. A stop asked for while they are
-        written (before metrics.json, the run's last word) stops the run at its last iteration."""
-        g = self.gaussians
-        self._stop_if_asked()
-        g.save_ply(self.out / run_folder.MODEL)
-        views = self.ds.test if self.ds.test else self.ds.train[:1]
-        if not self.ds.test and self.poses is not None:     # (a training view: through its refined camera, as eval)
-            views = [dataclasses.replace(views[0], camera=self.poses.cameras([views[0].camera])[0])]
-        scores, note = evaluate_views(g, views, self.background, cfg=self.cfg.raster, keep_images=True,
-                                      color_space=self.ds.color_space)
-        self._stop_if_asked()
-        report.write_view_outputs(self.out, scores, self.ds.color_space)
-        self.loop.close(self.elapsed)
-        metrics = {
-            "split": "test" if self.ds.test else "train (no test views)",
-            "protocol": PROTOCOLS["full"],
-            **scores_report(scores, note),
-            "gaussians": g.n,
-            "extent": round(self.extent, 6),     # (the length the run's length rules were fractions of: data.extent)
-            "iterations": self.step,
-            "training_seconds": round(self.elapsed, 3),
-            "iterations_per_second": round(self.step / self.elapsed, 3) if self.elapsed > 0 else None,
-            "loop": self.loop.to_dict(),
-        }
-        if self.exposure is not None:            # (the transforms belong to the training images: beside the model)
-            half, _ = evaluate_views(g, views, self.background, cfg=self.cfg.raster, color_space=self.ds.color_space,
-                                     protocol="half")
-            metrics["half_image"] = {"protocol": PROTOCOLS["half"], **scores_report(half, note)}
-            save_compensation(self.exposure, self.out, [v.name for v in self.ds.train])
-        if self.poses is not None or any(c is not v.camera for c, v in zip(self.given_cameras, self.ds.train)):
-            metrics["poses"] = self._pose_report()
-        depth = depth_error(g, views, cfg=self.cfg.raster)
-        if depth is not None:
-            metrics["depth_mae"], metrics["depth_coverage"] = depth["depth_mae"], round(depth["coverage"], 6)
-        self._stop_if_asked()
-        report.write_json(self.out / run_folder.METRICS, metrics)
-        report.write_json(self.out / run_folder.HISTORY, self.history.to_dict())
-        report.plot_curves(self.out / run_folder.CURVES, self.history.to_dict())
-        return metrics
+        """Final outputs (:func:`.outputs.write_outputs`): PLY, test renders and comparisons, metrics.json, curves.
+        A stop asked for while they are written (before metrics.json, the run's last word) stops the run at its last
+        iteration."""
+        from .outputs import write_outputs
+
+        return write_outputs(self)

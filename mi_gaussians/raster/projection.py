@@ -34,7 +34,7 @@ import numpy as np
 
 from ..config import RasterConfig
 from ..data.camera import Camera
-from ..drjit_utils import fclamp, fmax, fmin, quaternion_to_matrix, sigmoid
+from ..drjit_utils import fclamp, fmax, quaternion_to_matrix, sigmoid
 from ..model.gaussians import Gaussians
 from ..model.sh import eval_sh_colors, gather_sh_coeffs
 from .footprint import Ellipse, box
