@@ -201,6 +201,9 @@ class DensifyConfig:
     max_screen_fraction: float = 0.0         # max 2D radius above this fraction of max(width, height) in any view since
                                              # the last densification (gsplat's prune_scale2d, 0.15 when it is on);
                                              # 0: off, the reference's effective rule (its 20 px test never fires)
+    screen_prune_span: int = 0               # ... only in the densifications of this many iterations after
+                                             # prune_large_after (gsplat's refine_scale2d_stop_iter, as a span);
+                                             # 0: in every one until densify_until_iter
     reset_opacity: float = 0.01              # opacity reset: opacity = min(opacity, reset_opacity)
     reset_once: bool = False                 # a reset goes only over the Gaussians no reset has gone over yet (rows
                                              # created since the previous reset, and the initial points at the

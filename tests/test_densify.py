@@ -229,6 +229,18 @@ def test_screen_size_prune_is_relative_to_the_image():
         assert present[1] is not pruned, (width, height)
 
 
+def test_the_screen_size_prune_can_be_held_to_a_span_after_prune_large_after():
+    """With ``screen_prune_span`` the screen-size test prunes only in the densifications of that many iterations
+    after ``prune_large_after`` (gsplat's refine_scale2d_stop_iter); the world-size test goes on."""
+    cfg = dataclasses.replace(DensifyConfig(), max_screen_fraction=0.2, screen_prune_span=500)
+    present, _ = present_after(3500, cfg)
+    assert present == [False, False]                       # (3000 + 500: the last densification it prunes in)
+    present, _ = present_after(3600, cfg)
+    assert present == [False, True]                        # (only the world-huge 5 is pruned)
+    present, _ = present_after(3600, dataclasses.replace(cfg, screen_prune_span=0))
+    assert present == [False, False]                       # (0: every densification)
+
+
 def test_split_sampling_statistics():
     """Many children of one Gaussian: sample mean ~ centre, covariance ~ R S S^T R^T, scales sigma / 1.6."""
     k = 20000

@@ -28,8 +28,8 @@ Rules (the reference ``train.py`` / ``densify_and_prune``; ``step`` is the 1-bas
                    split_count children, mean x + R(q) (sigma * n), n ~ N(0, I), scale log(sigma / split_scale_divisor),
                    other parameters copied; the original is removed
             prune: sigmoid(opacity) < min_opacity, and when step > prune_large_after also
-                   max(exp(scales)) > max_world_scale * extent, or (when max_screen_fraction > 0)
-                   max_screen > max_screen_fraction
+                   max(exp(scales)) > max_world_scale * extent, or (when max_screen_fraction > 0, and while
+                   step <= prune_large_after + screen_prune_span when that is > 0) max_screen > max_screen_fraction
             statistics reset to zero (all remaining rows)
         if opacity_reset_interval > 0 and (step % opacity_reset_interval == 0
                                            or (white_background and step == densify_from_iter)):
@@ -327,7 +327,9 @@ class DefaultStrategy(Strategy):
         prune = sigmoid(dr.detach(params["opacities"].array)) < float(cfg.min_opacity)
         if step > cfg.prune_large_after:
             prune = prune | (_max3(dr.exp(_rows3(params["scales"]))) > float(cfg.max_world_scale) * self.extent)
-            if cfg.max_screen_fraction > 0:     # (off by default: dead code in the reference, see the top)
+            span = cfg.screen_prune_span
+            if cfg.max_screen_fraction > 0 and (span <= 0 or step <= cfg.prune_large_after + span):
+                # (off by default: dead code in the reference, see the top)
                 prune = prune | (max_screen > float(cfg.max_screen_fraction))
         is_split = concat([split_mask, dr.zeros(mi.Bool, n_all - n)])
         remove = prune | is_split
