@@ -208,6 +208,8 @@ def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cac
                                   run_id=None if record is None else record.run_id)
         except TrainingStopped as e:
             raise Stopped(e.signum, e.step) from None
+        if log is not None and metrics.get("poses", {}).get("note"):
+            log(f"note: {metrics['poses']['note']}")
         if ds.layout == "mitsuba":
             from .plugins.scene_xml import write_gaussian_scene
 

@@ -105,3 +105,16 @@ def test_rates_a_run_would_diverge_on_are_refused_before_it_starts():
                     "optim.pose_opt_lr_decay=1e9"):
         with pytest.raises(SettingError, match=setting.split("=")[0]):
             TrainConfig().with_settings([setting]).validate()
+
+
+def test_corrections_that_throw_the_cameras_around_are_reported(scene, tmp_path):  # noqa: F811
+    """The largest rate the range allows stays finite but moves the cameras far more than any calibration error:
+    metrics.json's pose report says so, naming the setting (and ``mi-gs optimize`` prints it as a note)."""
+    from mi_gaussians.optim.trainer import Trainer
+
+    cfg = small_config(60, checkpoint_every=60)
+    cfg = dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, pose_opt=True, pose_opt_lr=0.1))
+    metrics = Trainer(load(scene, cfg), cfg, tmp_path / "run", progress=False).run()
+    poses = metrics["poses"]
+    assert poses["correction"]["rotation_degrees"] > 10 or poses["correction"]["translation_of_extent"] > 0.2
+    assert "optim.pose_opt_lr = 0.1" in poses["note"]

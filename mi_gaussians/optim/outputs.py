@@ -12,6 +12,11 @@ from ..evaluate import PROTOCOLS, depth_error, evaluate_views, scores_report
 from .compensation import save_compensation
 from .pose import save_refined_cameras
 
+#: A --pose-opt run whose corrections moved the cameras further than this on average says so (a rate too large
+#: throws the cameras around while the loss stays finite: issue 54).
+LARGE_CORRECTION_DEGREES = 10.0
+LARGE_CORRECTION_OF_EXTENT = 0.2
+
 
 def write_outputs(tr) -> dict:
     """The final outputs of trainer ``tr`` at its last iteration: PLY, test renders and comparisons, metrics.json,
@@ -74,6 +79,13 @@ def pose_report(tr) -> dict:
            "rotation_error_degrees": {"start": round(r0, 6), "end": round(r1, 6)},
            "translation_error": {"start": round(d0, 8), "end": round(d1, 8)},
            "translation_error_of_extent": {"start": round(d0 / extent, 8), "end": round(d1 / extent, 8)}}
+    if tr.poses is not None:
+        moved_deg, moved = pose_errors(end, start)     # (how far the corrections took the cameras)
+        out["correction"] = {"rotation_degrees": round(moved_deg, 6), "translation_of_extent": round(moved / extent, 8)}
+        if moved_deg > LARGE_CORRECTION_DEGREES or moved / extent > LARGE_CORRECTION_OF_EXTENT:
+            out["note"] = (f"the pose corrections moved the training cameras by {moved_deg:.1f} degrees and "
+                           f"{moved / extent:.2f} of their spread on average: far more than calibration errors; "
+                           f"optim.pose_opt_lr = {tr.cfg.optim.pose_opt_lr:g} may be too large for this scene")
     points = tr.ds.points_xyz      # (the run's initial points, in the given cameras' frame: the scene's points)
     used = reprojection_points(points)       # (taken once, for both ends)
     p0, p1 = (reprojection_error(c, tr.given_cameras, used) for c in (start, end))
