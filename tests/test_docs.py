@@ -126,14 +126,20 @@ def test_the_integrator_and_run_folder_references_are_complete(site):
 
 
 def _bash_lines(path: Path):
-    """(line number, text) of every line of the ```bash blocks of a Markdown file."""
-    inside = False
+    """(line number, text) of every command line of the ```bash blocks of a Markdown file, a line ending in a
+    backslash joined with the next as the shell joins them."""
+    inside, start, held = False, 0, ""
     for i, line in enumerate(path.read_text().splitlines(), 1):
         if line.strip().startswith("```"):
             inside = line.strip() == "```bash" if not inside else False
             continue
         if inside:
-            yield i, line
+            start = start or i
+            if line.endswith("\\"):
+                held += line[:-1]
+                continue
+            yield start, held + line
+            start, held = 0, ""
 
 
 def test_every_mi_gs_command_the_pages_show_parses():
