@@ -281,11 +281,12 @@ def test_info_on_a_large_dataset_shows_progress_within_seconds():
     try:
         t, seen = time.perf_counter(), b""
         os.set_blocking(proc.stderr.fileno(), False)
-        while b"checking images" not in seen and time.perf_counter() - t < 30:
+        while b"checking images" not in seen and time.perf_counter() - t < 120 and proc.poll() is None:
             seen += proc.stderr.read() or b""
             time.sleep(0.2)
-        assert b"checking images" in seen, seen                 # (was: nothing for 100-250 s)
-        assert time.perf_counter() - t < 20
+        # the bar shows while the images are still being checked (was: nothing for 100-250 s, then the answer);
+        # no bound in seconds here, which a loaded machine's start-up alone could pass
+        assert b"checking images" in seen and proc.poll() is None, seen
     finally:
         proc.kill()
         proc.wait()
