@@ -110,6 +110,7 @@ def _sweep(spec: Path, out: Path, address: str) -> subprocess.Popen:
         log.close()
 
 
+@pytest.mark.slow   # (two 800-iteration sweeps through Ray, one killed and retried: two minutes and more on 2 cores)
 def test_a_killed_worker_is_retried_and_resumes_from_its_checkpoint(ray_cluster, larger, tmp_path):
     """The worker training a run is killed (SIGKILL) once the run has checkpointed: Ray runs the task again, which
     resumes at the checkpoint's iteration and ends within 0.5 dB of the same run never interrupted."""

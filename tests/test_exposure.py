@@ -149,6 +149,7 @@ def gained_dataset(source: Path, tmp_path: Path) -> tuple[Path, dict[str, float]
     return data, {f"train/r_{i}.png": float(g) for i, g in enumerate(gains)}
 
 
+@pytest.mark.slow
 def test_known_per_image_gains_are_recovered(scene, tmp_path):  # noqa: F811
     """Training images scaled by known per-image gains (on a black background, none above 1: nothing clips): the
     fitted transforms are those gains times one matrix common to all images (which the model's colours could absorb),
