@@ -198,14 +198,12 @@ class DensifyConfig:
     min_opacity: float = 0.005               # prune below this opacity
     prune_large_after: int = 3000            # after this iteration also prune the Gaussians that are too large:
     max_world_scale: float = 0.1             # max world scale above this times the extent, or
-    max_screen_fraction: float = 0.1         # max 2D radius above this fraction of max(width, height) in any view since
-                                             # the last densification (gsplat's prune_scale2d is 0.15; 0.1 is the
-                                             # reference's 20 px of a 200-pixel image, as a fraction of any image);
+    max_screen_fraction: float = 0.0         # max 2D radius above this fraction of max(width, height) in any view since
+                                             # the last densification (gsplat's prune_scale2d, 0.15 when it is on);
                                              # 0: off, the reference's effective rule (its 20 px test never fires)
-    screen_prune_span: int = 500             # ... only in the densifications of this many iterations after
-                                             # prune_large_after (gsplat's refine_scale2d_stop_iter, as a span): the
-                                             # floaters the first opacity reset exposes; 0: in every one until
-                                             # densify_until_iter
+    screen_prune_span: int = 0               # ... only in the densifications of this many iterations after
+                                             # prune_large_after (gsplat's refine_scale2d_stop_iter, as a span);
+                                             # 0: in every one until densify_until_iter
     reset_opacity: float = 0.01              # opacity reset: opacity = min(opacity, reset_opacity)
     reset_once: bool = False                 # a reset goes only over the Gaussians no reset has gone over yet (rows
                                              # created since the previous reset, and the initial points at the
@@ -296,10 +294,6 @@ class TrainConfig:
         if isinstance(dens, dict) and "opacity_reset_interval" in dens and "prune_large_after" not in dens:
             # (a record from before prune_large_after: its large-Gaussian prunes began after the first reset)
             d = {**d, "densify": {**dens, "prune_large_after": dens["opacity_reset_interval"]}}
-        dens = d.get("densify") if isinstance(d, dict) else None
-        if isinstance(dens, dict) and "opacity_reset_interval" in dens:
-            # (a record from before the screen-size prune was on by default: off, or in every densification)
-            d = {**d, "densify": {"max_screen_fraction": 0.0, "screen_prune_span": 0, **dens}}
         data = d.get("data") if isinstance(d, dict) else None
         if isinstance(data, dict) and "extent" not in data:
             # (a record from before data.extent: its lengths were fractions of the cameras' spread)

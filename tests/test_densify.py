@@ -211,18 +211,12 @@ def test_big_gaussians_pruned_only_after_prune_large_after():
     assert info.pruned == 3 and present == [True, True]
 
 
-def test_the_reference_screen_size_rule_is_one_setting_away():
-    """The reference's 20 px test never fires (its densification_postfix zeroes max_radii2D first):
-    ``max_screen_fraction=0`` is its rule, only the world-size test prunes large Gaussians. The default prunes what
-    is over a tenth of the image in the densifications of the 500 iterations after ``prune_large_after``."""
-    reference = dataclasses.replace(DensifyConfig(), max_screen_fraction=0)
-    present, info = present_after(3100, reference)
-    assert info.pruned == 4 and present == [False, True]     # 3, 7, clone of 7 and the world-huge 5; 6 stays
-    assert (DensifyConfig().max_screen_fraction, DensifyConfig().screen_prune_span) == (0.1, 500)
+def test_screen_size_prune_is_off_by_default_like_the_reference():
+    """The reference's 20 px test never fires (its densification_postfix zeroes max_radii2D first): by default only
+    the world-size test prunes large Gaussians."""
+    assert DensifyConfig().max_screen_fraction == 0
     present, info = present_after(3100, DensifyConfig())
-    assert present == [False, False]                         # 6, over a tenth of the image, too
-    present, info = present_after(3600, DensifyConfig())
-    assert present == [False, True]                          # (past the span: the world-size test alone)
+    assert info.pruned == 4 and present == [False, True]     # 3, 7, clone of 7 and the world-huge 5; 6 stays
 
 
 def test_screen_size_prune_is_relative_to_the_image():

@@ -25,9 +25,9 @@ def small_config(iterations=300, **kw) -> TrainConfig:
         data=DataConfig(background=(1.0, 1.0, 1.0), random_points=5000),
         optim=OptimConfig(iterations=iterations, position_lr_max_steps=iterations, sh_degree=1,
                           sh_increase_interval=100),
-        # (the reference's screen-size rule, off: on this schedule the large-Gaussian prunes begin at 150, while the
-        # model is still mostly its random points, and the relative screen-size prune would remove them before they
-        # split: 25.7 -> 15.3 dB in test_psnr_rises_and_outputs_are_written)
+        # (the reference's screen-size rule, off, whatever the default: on this schedule the large-Gaussian prunes
+        # begin at 150, while the model is still mostly its random points, and a relative screen-size prune of 0.1
+        # removes them before they split: 25.7 -> 15.3 dB in test_psnr_rises_and_outputs_are_written)
         densify=DensifyConfig(densify_from_iter=100, densify_until_iter=iterations // 2, densification_interval=50,
                               opacity_reset_interval=150, prune_large_after=150, max_screen_fraction=0.0),
         checkpoint_every=kw.pop("checkpoint_every", 100), eval_every=100, save_iterations=(), **kw)

@@ -43,17 +43,13 @@ originals and pruned rows in one call (same result, two state rewrites instead o
 
 Deliberate differences from the reference code (each flagged where it is implemented):
 
-* Screen-size pruning is stated relative to the image, and held to the densifications of ``screen_prune_span``
-  (500) iterations after ``prune_large_after``. The reference's ``densification_postfix`` zeroes ``max_radii2D``
-  before its prune test, so its ``max_radii2D > 20`` (pixels) test never fires (only the world-size test does), which
-  ``max_screen_fraction = 0`` reproduces. A rule in pixels would prune a larger share of the Gaussians the larger the
-  image (20 px is 10 % of a 200-pixel image, 5 % of a 400-pixel one); ours is gsplat's: the largest radius over the
-  views since the last densification, divided by each view's max(W, H), against ``max_screen_fraction`` (0.1, the
-  reference's 20 px of a 200-pixel image; gsplat's ``prune_scale2d`` is 0.15), for a span as gsplat's
-  ``refine_scale2d_stop_iter``; new rows inherit their source's value, as in gsplat. Why on: an object on an empty
-  background keeps large dark floaters that the photometric loss barely sees (dark in front of a dark background) and
-  that hide the object in some views; the first opacity reset exposes them and the screen-size test removes them
-  (measured: docs/benchmarks/empty_background.md).
+* Screen-size pruning is stated relative to the image, and off by default. The reference's
+  ``densification_postfix`` zeroes ``max_radii2D`` before its prune test, so its ``max_radii2D > 20`` (pixels) test
+  never fires (only the world-size test does), which ``max_screen_fraction = 0`` reproduces. A rule in pixels would
+  prune a larger share of the Gaussians the larger the image (20 px is 10 % of a 200-pixel image, 5 % of a 400-pixel
+  one); when on, ours is gsplat's: the largest radius over the views since the last densification, divided by each
+  view's max(W, H), against ``max_screen_fraction`` (gsplat's ``prune_scale2d``, 0.15); new rows inherit their
+  source's value, as in gsplat.
 * The large-Gaussian prunes start after ``prune_large_after`` (the reference and gsplat: after the first opacity
   reset, 3000), a setting of its own so that turning resets off (``opacity_reset_interval = 0``, what gsplat 1.5.3
   effectively does: its reset test is always false) keeps them.
@@ -333,7 +329,7 @@ class DefaultStrategy(Strategy):
             prune = prune | (_max3(dr.exp(_rows3(params["scales"]))) > float(cfg.max_world_scale) * self.extent)
             span = cfg.screen_prune_span
             if cfg.max_screen_fraction > 0 and (span <= 0 or step <= cfg.prune_large_after + span):
-                # (dead code in the reference; relative to the image and held to a span here: see the top)
+                # (off by default: dead code in the reference, see the top)
                 prune = prune | (max_screen > float(cfg.max_screen_fraction))
         is_split = concat([split_mask, dr.zeros(mi.Bool, n_all - n)])
         remove = prune | is_split
