@@ -358,6 +358,29 @@ def test_umeyama_recovers_a_similarity():
     assert abs(s - 2.5) < 1e-9 and np.allclose(R2, R) and np.allclose(t, [1.0, -2.0, 0.5])
 
 
+def test_the_alignment_of_sfm_cameras_holds_against_misregistered_ones():
+    """64 cameras on a sphere of radius 4, 7 of them registered mirrored through the object (as structure from motion
+    does with some views of a symmetric scene): a least-squares fit over every camera is dragged off; the consensus
+    recovers the similarity and names the 57 cameras that agree. With most cameras wrong it finds no majority."""
+    rng = np.random.default_rng(1)
+    truth = rng.normal(size=(64, 3))
+    truth = 4.0 * truth / np.linalg.norm(truth, axis=1, keepdims=True)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    R = q * np.sign(np.linalg.det(q))
+    s_true, t_true = 0.7, np.array([0.3, -1.0, 2.0])
+    sfm = ((truth - t_true) @ R) / s_true                      # the inverse similarity: sfm -> truth is (s, R, t)
+    sfm[:7] = -sfm[:7]                                          # mirrored registrations
+    s, R2, t = scene_init.umeyama(sfm, truth)
+    assert np.abs(s * sfm @ R2.T + t - truth).max() > 1.0       # (the plain fit: off by a quarter of the rig)
+    s, R2, t, agree = scene_init.robust_umeyama(sfm, truth)
+    assert abs(s - s_true) < 1e-9 and np.allclose(R2, R) and np.allclose(t, t_true)
+    assert agree.tolist() == [False] * 7 + [True] * 57
+    scrambled = sfm.copy()
+    scrambled[:40] = rng.permutation(scrambled[:40])
+    _, _, _, agree = scene_init.robust_umeyama(scrambled, truth)
+    assert agree.sum() < 32
+
+
 def test_dataset_from_shapes_init(scene_file, tmp_path):
     cfg = SceneConfig(views=6, test_views=1, init_points=3000, resolution=(24,))
     ds = load_scene_dataset(scene_file, cfg, cache_root=tmp_path / "refs", progress=False)
