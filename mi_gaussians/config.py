@@ -28,7 +28,7 @@ RANDOM_INITS = ("cube", "frustum")
 #: ``SceneConfig.rig``: the cameras of a Mitsuba scene.
 RIGS = ("auto", "sensors", "hemisphere", "sphere")
 #: ``SceneConfig.init``: the initial points of a Mitsuba scene.
-SCENE_INITS = ("shapes", "random", "sfm")
+SCENE_INITS = ("shapes", "random", "triangulate", "sfm")
 #: ``OptimConfig.exposure``: per-image colour compensation ('affine': the 2024 reference's --train_test_exp;
 #: 'bilateral': gsplat's bilateral grids).
 EXPOSURES = ("off", "affine", "bilateral")
@@ -248,7 +248,9 @@ class SceneConfig:
     spp: int | None = None                   # reference samples per pixel; fallback 128
     linear: bool = False                     # train on linear radiance (default: on the sRGB-encoded references)
     init: str = "shapes"                     # 'shapes' (Mitsuba shape sampling, coloured by the references),
-                                             # 'random' (uniform in the bounding box) or 'sfm' (pycolmap)
+                                             # 'random' (uniform in the bounding box), 'triangulate' (SIFT points
+                                             # triangulated from the references with the scene's exact cameras) or
+                                             # 'sfm' (pycolmap structure from motion, poses found again)
     init_points: int = 50_000                # points to sample ('shapes', 'random')
 
 

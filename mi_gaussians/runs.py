@@ -353,7 +353,8 @@ def training_dataset(src: str | Path, cfg: TrainConfig, out: str | Path, cache: 
 
         return load_scene_dataset(src, cfg.scene, cache_root=references_root(Path(out), cache), background=d.background,
                                   test_every=d.test_every, seed=d.seed, progress=progress, log=log,
-                                  expect_key=expect_key, render_missing=render_missing, farm=farm)
+                                  expect_key=expect_key, render_missing=render_missing, farm=farm,
+                                  triangulation=cfg.triangulate)
     ds = load_dataset(src, resolution=d.resolution, background=d.background, test_every=d.test_every,
                       random_points=d.random_points, seed=d.seed, masks=d.masks,
                       random_init="frustum" if d.init == "frustum" else "cube",

@@ -40,9 +40,10 @@ _SCENE = _unless(lambda _, scene_file: scene_file,
 _FOLDER = _unless(lambda _, scene_file: not scene_file,
                   "it configures a dataset folder, and this run trains on a Mitsuba scene (.xml), whose film size is "
                   "-r W H (scene.resolution) and whose initial points are scene.init")
-_TRIANGULATED = _unless(lambda c, scene_file: not scene_file and c.data.init in ("auto", "triangulate"),
-                        "initial points are triangulated only with data.init auto or triangulate from a dataset folder "
-                        "(this run: {init})")
+_TRIANGULATED = _unless(lambda c, scene_file: c.scene.init == "triangulate" if scene_file
+                        else c.data.init in ("auto", "triangulate"),
+                        "initial points are triangulated only with data.init auto or triangulate (a dataset folder) "
+                        "or scene.init triangulate (a Mitsuba scene); this run's are not")
 
 #: Every setting that may have no effect, and when. (The order is that of the notes.)
 RULES = (

@@ -1,7 +1,9 @@
 """Training quality does not fall with the image size (opt-in: ``pytest -m slow``, about 15 minutes on 2 cores).
 
-The same scene, path-traced by Mitsuba at two film sizes, trained by ``mi-gs optimize`` from structure-from-motion
-points (as a COLMAP capture starts) with the same compressed schedule: the larger image must score at least as well
+The same scene, path-traced by Mitsuba at two film sizes, trained by ``mi-gs optimize`` from SIFT points triangulated
+with the scene's cameras (``--init triangulate``: the points a COLMAP capture starts from; full structure from motion
+registers this synthetic scene's cameras unreliably, 3 of 55 agreeing at 200 pixels, and is refused) with the same
+compressed schedule: the larger image must score at least as well
 as the smaller one, less a margin. A rule of the trainer stated in pixels fails it: the screen-size prune of 20 px
 (a tenth of a 200-pixel image, a twentieth of a 400-pixel one) pruned a larger share of the Gaussians the larger the
 image, so that a 400x400 scene ended 6.9 dB below its own half-resolution run on gsplat's benchmark (issue 35), and
@@ -38,7 +40,7 @@ def test_a_larger_image_trains_at_least_as_well_as_a_smaller_one(tmp_path):
     for size in SIZES:
         out = tmp_path / f"r{size}"
         cmd = [sys.executable, "-m", "mi_gaussians.cli", "optimize", str(SCENES / "objects.xml"), "-o", str(out),
-               "-r", str(size), "--spp", "32", "--white-background", "--init", "sfm",
+               "-r", str(size), "--spp", "32", "--white-background", "--init", "triangulate",
                "--cache", str(tmp_path / "references"),
                "--quiet", *SCHEDULE]
         res = subprocess.run(cmd, capture_output=True, text=True, timeout=1800, cwd=tmp_path)

@@ -251,3 +251,19 @@ def test_a_layouts_own_points_are_left_out_when_another_init_is_asked_for(tmp_pa
     assert r.returncode == 0 and "random (frustum)" in r.stderr, r.stderr        # (information: not --quiet)
     r = run("optimize", colmap, "-o", tmp_path / "run", "--resume", "--iterations", 25, "--quiet")
     assert r.returncode == 0, r.stderr
+
+
+def test_a_points_cache_of_an_earlier_version_is_computed_again_and_called_so(tmp_path):
+    """A cache our earlier version wrote (its arrays whole, a newer field missing: the SfM alignment's ``aligned_on``)
+    is not called damaged: one note says it predates the change, and it is computed again."""
+    from mi_gaussians.data.triangulate import load_cached_points
+
+    cached = tmp_path / "points.npz"
+    np.savez(cached, xyz=np.zeros((5, 3), np.float32), rgb=np.ones((5, 3), np.float32))
+    lines = []
+    assert load_cached_points(cached, ("aligned_on",), lines.append) is None
+    assert lines == [f"note: {cached}: initial points computed by an earlier version (no aligned_on); computing "
+                     "them again"]
+    assert not cached.exists()
+    np.savez(cached, xyz=np.zeros((5, 3), np.float32), rgb=np.ones((5, 3), np.float32), aligned_on=np.int64(4))
+    assert int(load_cached_points(cached, ("aligned_on",), lines.append)["aligned_on"]) == 4 and len(lines) == 1

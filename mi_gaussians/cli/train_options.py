@@ -194,7 +194,8 @@ def options() -> list[Option]:
             "help": f"initial points. A dataset folder: {' | '.join(INITS)} (default {d.init}: the dataset's own "
                     "points, else triangulated from the posed images, else the random cube); a scene .xml: "
                     f"{' | '.join(SCENE_INITS)} (default {sc.init}: sampled on the shapes and coloured by the "
-                    "references, random in the bounding box, or structure from motion)"},
+                    "references, random in the bounding box, triangulated from the references with the scene's "
+                    "exact cameras, or structure from motion)"},
                give=_init),
         Option(("--init-points",), ("scene.init_points",), {
             "type": positive_int, "help": f"initial points for shapes/random (default {sc.init_points})"},

@@ -25,7 +25,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..config import DataConfig, SceneConfig
+from ..config import DataConfig, SceneConfig, TriangulateConfig
 from ..imwrite import linear_to_srgb, srgb_to_linear
 from . import scene_init
 from .camera import Camera
@@ -71,7 +71,8 @@ def reference_view(c: Camera, path: Path, bg_linear: tuple, linear: bool) -> Vie
 def load_scene_dataset(path: str | os.PathLike, cfg: SceneConfig = SceneConfig(), cache_root: str | os.PathLike = ".",
                        background=(0.0, 0.0, 0.0), test_every: int = DataConfig().test_every, seed: int = 0,
                        progress: bool = True, log: Callable[[str], None] | None = None,
-                       expect_key: str | None = None, render_missing: bool = True, farm=None) -> Dataset:
+                       expect_key: str | None = None, render_missing: bool = True, farm=None,
+                       triangulation: TriangulateConfig = TriangulateConfig()) -> Dataset:
     """Load ``path``, make its cameras, render (or reuse) the references, initialize points: a ``Dataset``.
 
     ``expect_key``: the references key of an earlier run (``--resume``, ``mi-gs eval``); a scene that no longer
@@ -95,11 +96,13 @@ def load_scene_dataset(path: str | os.PathLike, cfg: SceneConfig = SceneConfig()
     bg, bg_linear = composite_background(background, cfg.linear)
     train = [reference_view(c, paths[c.name], bg_linear, cfg.linear) for c in views.train]
     test = [reference_view(c, paths[c.name], bg_linear, cfg.linear) for c in views.test]
-    # (SfM runs on the composited training images: its cache depends on the background and the colour space)
-    sfm_tag = "_".join(f"{b:.4g}" for b in bg) + ("_linear" if cfg.linear else "")
+    # (SfM and the triangulation run on the composited training images: their caches depend on the background and
+    # the colour space)
+    tag = "_".join(f"{b:.4g}" for b in bg) + ("_linear" if cfg.linear else "")
+    work = cache_dir / (f"sfm_{tag}" if cfg.init == "sfm" else f"triangulated_{tag}")
     try:
-        xyz, rgb = scene_init.initial_points(scene, cfg.init, cfg.init_points, train, cache_dir / f"sfm_{sfm_tag}",
-                                             seed=seed, linear=cfg.linear, log=log)
+        xyz, rgb = scene_init.initial_points(scene, cfg.init, cfg.init_points, train, work, seed=seed,
+                                             linear=cfg.linear, log=log, triangulation=triangulation)
     except ValueError as e:
         if str(p) in str(e):
             raise

@@ -8,9 +8,15 @@ Three methods (``SceneConfig.init``):
   sees are dropped. Exact geometry and colours: it needs no structure from motion and wins on quality and time
   (README, "Mitsuba scenes").
 - ``random``: uniform in the scene's bounding box with random colours (the reference's synthetic-scene init).
+- ``triangulate``: SIFT points of the training references triangulated with pycolmap from the scene's exact cameras
+  (:mod:`mi_gaussians.data.triangulate`, as for a Blender dataset: COLMAP's ``point_triangulator`` on known poses):
+  the points a COLMAP capture starts from, without structure from motion's chance of placing cameras wrongly.
 - ``sfm``: structure from motion with pycolmap on the (sRGB-encoded) training references, as for photographs, then
-  aligned to the known cameras by the similarity that maps the SfM camera centres onto the true ones (Umeyama).
-  Its points are cached next to the references.
+  aligned to the known cameras by the similarity that maps the SfM camera centres onto the true ones (Umeyama over
+  the cameras that agree). On renders of a synthetic scene, structure from motion often registers cameras wrongly
+  (mirrored, or in a second cluster): a reconstruction where fewer than half agree is refused.
+
+The ``triangulate`` and ``sfm`` points are cached next to the references (``work``).
 
 Colours are in the training colour space: sRGB-encoded, or linear radiance with ``linear=True``.
 """
@@ -24,23 +30,34 @@ from typing import Callable
 
 import numpy as np
 
-from ..config import SCENE_INITS
+from ..config import SCENE_INITS, TriangulateConfig
 from ..imwrite import linear_to_srgb, srgb_to_linear, write_png
 from ..io_utils import atomic_path
 from . import pointcloud as _pc
 from .camera import camera_center
-from .triangulate import load_cached_points
+from .triangulate import NoPoints, cache_key, load_cached_points, triangulate
 
 INIT_METHODS = SCENE_INITS      # (named in config)
 
 
-def initial_points(scene, method: str, n: int, train_views, sfm_dir: Path, seed: int = 0, linear: bool = False,
-                   log: Callable[[str], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(xyz (M, 3) float32, rgb (M, 3) float32) by ``method`` (see the module docstring); ``sfm_dir``: the work
-    and cache folder of the ``sfm`` method."""
+def initial_points(scene, method: str, n: int, train_views, work: Path, seed: int = 0, linear: bool = False,
+                   log: Callable[[str], None] | None = None,
+                   triangulation: TriangulateConfig = TriangulateConfig()) -> tuple[np.ndarray, np.ndarray]:
+    """(xyz (M, 3) float32, rgb (M, 3) float32) by ``method`` (see the module docstring); ``work``: the work
+    and cache folder of the ``triangulate`` and ``sfm`` methods (``triangulation``: the former's settings)."""
     if method not in INIT_METHODS:
         raise ValueError(f"unknown initialization {method!r} (expected one of {', '.join(INIT_METHODS)})")
-    if method != "sfm" and n < 1:
+    if method == "triangulate":
+        # (a folder per settings and seed, as a dataset folder's: runs with other triangulation settings do not share)
+        tri = triangulate(train_views, "linear" if linear else "srgb", work / cache_key(work.name, triangulation, seed),
+                          triangulation, seed, where="the scene's references", log=log)
+        if len(tri.xyz) < triangulation.min_points:
+            raise NoPoints(f"the triangulation of the references kept {len(tri.xyz):,} points, fewer than "
+                           f"triangulate.min_points ({triangulation.min_points}) (use --init shapes)")
+        if log is not None and not tri.cached:
+            log(f"initial points: {len(tri.xyz):,} triangulated from the references with the scene's cameras")
+        return tri.xyz, tri.rgb
+    if method not in ("sfm", "triangulate") and n < 1:
         raise ValueError(f"the number of initial points must be >= 1, got {n}")
     if method == "random":
         b = scene.bbox()
@@ -55,7 +72,7 @@ def initial_points(scene, method: str, n: int, train_views, sfm_dir: Path, seed:
             raise ValueError("no point sampled on the scene's shapes is visible from a training camera "
                              "(check the cameras, or use --init random)")
         return xyz[seen], rgb[seen]
-    return sfm_points(train_views, sfm_dir, linear=linear, log=log)
+    return sfm_points(train_views, work, linear=linear, log=log)
 
 
 # ---------------------------------------------------------------------------------------------------- shapes
@@ -210,18 +227,19 @@ def sfm_points(train_views, work: Path, linear: bool = False,
         pairs = [(truth[os.path.splitext(n)[0]], c) for n, c in pairs if os.path.splitext(n)[0] in truth]
         if len(pairs) < 3 or len(model.points_xyz) == 0:
             raise ValueError(f"{work}: structure from motion registered too few references ({len(pairs)}) to "
-                             "align to the scene (use --init shapes)")
+                             "align to the scene (use --init triangulate or --init shapes)")
         s, R, t, agree = robust_umeyama(np.array([c for _, c in pairs]), np.array([g for g, _ in pairs]))
-        if agree.sum() < max(3, len(pairs) // 2):
-            raise ValueError(f"{work}: structure from motion's cameras do not fit the scene's: only {agree.sum()} of "
+        agreeing = int(agree.sum())
+        if agreeing < max(3, len(pairs) // 2):
+            raise ValueError(f"{work}: structure from motion's cameras do not fit the scene's: only {agreeing} of "
                              f"{len(pairs)} land within {ALIGN_TOLERANCE:.0%} of the rig's size of their true place "
-                             "under one similarity (use --init shapes)")
+                             "under one similarity (use --init triangulate, which keeps the scene's cameras, or "
+                             "--init shapes)")
         xyz = (s * model.points_xyz.astype(np.float64) @ R.T + t).astype(np.float32)
         rgb = model.points_rgb.astype(np.float32)
         with atomic_path(cached, suffix=".npz") as tmp:
             with open(tmp, "wb") as f:
-                np.savez(f, xyz=xyz, rgb=rgb, aligned_on=np.int64(agree.sum()))
-        agreeing = int(agree.sum())
+                np.savez(f, xyz=xyz, rgb=rgb, aligned_on=np.int64(agreeing))
     if log is not None:
         log(f"initial points: {len(xyz):,} from structure from motion (aligned on the {agreeing} cameras that agree)")
     return xyz, (srgb_to_linear(rgb) if linear else rgb)

@@ -110,7 +110,14 @@ def load_cached_points(cached: Path, extra: tuple[str, ...], say: Callable[[str]
         return None
     try:
         with np.load(cached, allow_pickle=False) as z:
-            got = {k: np.asarray(z[k]) for k in ("xyz", "rgb", *extra)}
+            older = [k for k in extra if k not in z.files] if {"xyz", "rgb"} <= set(z.files) else []
+            got = None if older else {k: np.asarray(z[k]) for k in ("xyz", "rgb", *extra)}
+        if got is None:         # (written by an earlier version that computed them differently: not damaged)
+            say(f"note: {cached}: initial points computed by an earlier version (no {', '.join(older)}); "
+                "computing them again")
+            with contextlib.suppress(OSError):
+                cached.unlink()
+            return None
         xyz, rgb = got["xyz"], got["rgb"]
         if xyz.ndim != 2 or xyz.shape[1] != 3 or rgb.shape != xyz.shape or not np.all(np.isfinite(xyz)):
             raise ValueError(f"points of shape {xyz.shape} with colours of shape {rgb.shape}, or not finite")
