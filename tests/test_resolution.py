@@ -22,16 +22,19 @@ import pytest
 
 SCENES = Path(__file__).resolve().parents[1] / "scenes"
 
-#: (small, large) film sizes in pixels. Measured with the code before the fix (fec57a1) on this test's settings:
-#: 37.62 dB at 200 and 33.79 at 400 (20 px is a tenth of the one and a twentieth of the other), which fails
+#: (small, large) film sizes in pixels. Measured on this test's settings (2026-11-28, de478ef, 2 cores): the defaults
+#: 37.60 dB at 200 and 38.53 at 400 (+0.93); a rule in pixels, the 20-px screen-size prune of fec57a1 (given as
+#: densify.max_screen_fraction 0.1 at 200 and 0.05 at 400), 37.61 and 37.27 (-0.34), which fails. (From structure
+#: from motion's points, before they were refused, fec57a1 scored 37.62 and 33.79, part of that from misplaced points.)
 SIZES = (200, 400)
 #: the paper's schedule compressed about tenfold (densification from 200 every 50 iterations until 2500 of 3000,
 #: opacity resets at 1000 and 2000, the large-Gaussian prunes from 1000 on): every rule acts
 SCHEDULE = ["--iterations", "3000", "--set", "densify.densify_from_iter=200",
             "--set", "densify.densification_interval=50", "--set", "densify.densify_until_iter=2500",
             "--set", "densify.opacity_reset_interval=1000", "--set", "densify.prune_large_after=1000"]
-#: the larger image may score this much below the smaller one (PSNR in dB)
-MARGIN = 0.5
+#: the larger image may score this much below the smaller one (PSNR in dB): none (the defaults leave 0.93 to spare,
+#: the pixel rule misses by 0.34)
+MARGIN = 0.0
 
 
 @pytest.mark.slow
