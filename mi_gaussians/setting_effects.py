@@ -64,6 +64,10 @@ RULES = (
                                               "not use (its threshold is densify.grad_threshold)")),
     Rule("densify.grad_threshold", _unless(lambda c, _: not c.densify.absgrad,
                                            "with --absgrad the threshold is densify.absgrad_threshold")),
+    Rule("densify.weight_prune", _unless(lambda c, _: c.strategy == "default"
+                                         and c.densify.densify_until_iter < c.optim.iterations,
+                                         "it acts at densify.densify_until_iter in the default strategy, which this "
+                                         "run does not reach or use")),
     Rule("scene.*", _SCENE),
     Rule("data.resolution", _FOLDER),
     Rule("data.init", _FOLDER),

@@ -61,6 +61,9 @@ Deliberate differences from the reference code (each flagged where it is impleme
   does not recover in time (gsplat's issue 1011 describes such Gaussians; its PR 1012 proposes resetting only young
   ones). Clones and split children are new rows, not yet reset. Measured no better than the reference's resets or
   none (README, "Each rule changed alone").
+* ``weight_prune`` (off by default; not in the reference): at ``densify_until_iter``, the Gaussians whose largest
+  blending weight in a training view is below it are removed (:mod:`.weights`: at 1/255, those no training view shows
+  at all; the trainer supplies ``view_weights``), so that the iterations after densification do not carry them.
 * ``densify_until_iter`` bounds everything with ``step < densify_until_iter`` exactly as the reference's
   ``if iteration < opt.densify_until_iter`` block (so no opacity reset at step 15000 with the defaults).
 
@@ -79,6 +82,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import drjit as dr
 import mitsuba as mi
@@ -145,6 +149,9 @@ class DefaultStrategy(Strategy):
         self.extent = float(extent)
         self.seed = int(seed)
         self.white_background = bool(white_background)
+        #: ``gaussians -> mi.Float``: each Gaussian's largest blending weight over the training views
+        #: (:func:`mi_gaussians.optim.weights.max_weights` on them); the trainer sets it (``densify.weight_prune``)
+        self.view_weights: Callable | None = None
 
     @classmethod
     def from_config(cls, cfg, extent: float, white_background: bool) -> "DefaultStrategy":
@@ -225,6 +232,12 @@ class DefaultStrategy(Strategy):
         """Densify / prune / reset opacities when iteration ``step`` is scheduled to, from the statistics gathered so
         far (nothing otherwise)."""
         info = StepInfo(n=params.n)
+        if self._weight_prunes_at(step):
+            info.pruned = self._weight_prune(params, state)
+            info.changed = True
+            params.clear_grads()
+            info.n = params.n
+            return info
         if step >= self.cfg.densify_until_iter:
             return info
         self._check_size(params, state)
@@ -258,8 +271,11 @@ class DefaultStrategy(Strategy):
         return every > 0 and step < cfg.densify_until_iter and (
             step % every == 0 or (self.white_background and step == cfg.densify_from_iter))
 
+    def _weight_prunes_at(self, step: int) -> bool:
+        return self.cfg.weight_prune > 0 and step == self.cfg.densify_until_iter
+
     def refines_at(self, step: int) -> bool:
-        return self._densifies_at(step) or self._resets_at(step)
+        return self._densifies_at(step) or self._resets_at(step) or self._weight_prunes_at(step)
 
     def updates_state_at(self, step: int) -> bool:
         return step < self.cfg.densify_until_iter
@@ -341,6 +357,19 @@ class DefaultStrategy(Strategy):
 
         st.reset(params.n)
         return n_clone, n_split, n_pruned
+
+    def _weight_prune(self, params: GaussianAdam, st: DensifyState) -> int:
+        """Remove the Gaussians no training view shows by ``weight_prune`` pixels' worth; returns how many."""
+        if self.view_weights is None:
+            raise ValueError("densify.weight_prune needs the training views' weights (DefaultStrategy.view_weights)")
+        self._check_size(params, st)
+        keep = self.view_weights(params.gaussians) >= float(self.cfg.weight_prune)
+        removed = params.n - _count(keep)
+        if removed:
+            params.keep(keep)
+            st.reset_done = dr.gather(mi.Bool, st.reset_done, dr.compress(keep))
+            st.reset(params.n)
+        return removed
 
     def _split_children(self, params: GaussianAdam, st: DensifyState, clone_idx, child_src) -> dict:
         """Means and scales of the new rows [clones, children of ``child_src``]: clones copied, children sampled from

@@ -11,16 +11,24 @@ from ..model.gaussians import Gaussians
 from .densify import DefaultStrategy
 from .mcmc import MCMCStrategy
 from .strategy import Strategy
+from .weights import max_weights
 
 #: The class of each strategy that ``config.STRATEGIES`` names (tests/test_cli.py checks that both hold the same names).
 CLASSES: dict[str, type[Strategy]] = {"default": DefaultStrategy, "mcmc": MCMCStrategy}
 
 
-def make_strategy(cfg: TrainConfig, extent: float, white_background: bool) -> Strategy:
-    """The densification strategy ``cfg.strategy`` names, built from its section of ``cfg``."""
+def make_strategy(cfg: TrainConfig, extent: float, white_background: bool, train_cameras=()) -> Strategy:
+    """The densification strategy ``cfg.strategy`` names, built from its section of ``cfg``; ``train_cameras``: the
+    training views' cameras, whose blending weights ``densify.weight_prune`` measures (:mod:`.weights`)."""
     if cfg.strategy not in CLASSES:
         raise ValueError(f"unknown densification strategy {cfg.strategy!r} (expected one of {', '.join(STRATEGIES)})")
-    return CLASSES[cfg.strategy].from_config(cfg, extent, white_background)
+    strategy = CLASSES[cfg.strategy].from_config(cfg, extent, white_background)
+    if isinstance(strategy, DefaultStrategy) and cfg.densify.weight_prune > 0:
+        cameras = list(train_cameras)
+        if not cameras:
+            raise ValueError("densify.weight_prune needs the training cameras")
+        strategy.view_weights = lambda g: max_weights(g, cameras, cfg.raster)
+    return strategy
 
 
 def initial_gaussians(ds: Dataset, sh_degree: int, strategy: Strategy | None = None, seed: int = 0) -> Gaussians:

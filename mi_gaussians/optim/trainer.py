@@ -74,7 +74,8 @@ class Trainer:
         self.sampler = ViewSampler(len(ds.train), cfg.seed)
         # what each step takes of each training view: its camera and target, at the coarse-to-fine schedule's scale
         self.views = TrainingViews(ds, cfg)
-        self.strategy = make_strategy(cfg, self.extent, white_background=self.background == (1.0, 1.0, 1.0))
+        self.strategy = make_strategy(cfg, self.extent, white_background=self.background == (1.0, 1.0, 1.0),
+                                      train_cameras=[v.camera for v in ds.train])
         self.params = GaussianAdam(initial_gaussians(ds, cfg.optim.sh_degree, self.strategy, seed=cfg.seed + 3),
                                    cfg.optim, self.extent)
         self.strategy_state = self.strategy.initialize_state(self.params.n)
