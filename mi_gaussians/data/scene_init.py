@@ -1,6 +1,6 @@
 """Initial points for a Mitsuba scene dataset (``mi_gaussians.data.scene_dataset``).
 
-Three methods (``SceneConfig.init``):
+Four methods (``SceneConfig.init``):
 
 - ``shapes`` (default): points sampled on the scene's shapes with Mitsuba's own ``Shape.sample_position``
   (uniform by area over all shapes), each coloured by the mean of the training references at the pixels where it is
@@ -57,7 +57,7 @@ def initial_points(scene, method: str, n: int, train_views, work: Path, seed: in
         if log is not None and not tri.cached:
             log(f"initial points: {len(tri.xyz):,} triangulated from the references with the scene's cameras")
         return tri.xyz, tri.rgb
-    if method not in ("sfm", "triangulate") and n < 1:
+    if method != "sfm" and n < 1:
         raise ValueError(f"the number of initial points must be >= 1, got {n}")
     if method == "random":
         b = scene.bbox()
