@@ -1,14 +1,14 @@
 """How many of a trained model's Gaussians the training views do not need: offline pruning by blending weight.
 
-    python benchmarks/prune_scores.py RUN [--thresholds 0.0039 0.05 0.5] [--fractions 0.1 0.2]
+    python benchmarks/prune_scores.py RUN [--thresholds 9.8e-8 1.25e-6] [--fractions 0.1 0.2]
 
 For the finished run ``RUN`` (its ``point_cloud.ply`` and dataset), every Gaussian's blending weight in every training
 view is measured exactly (``mi_gaussians.optim.weights.max_weights``: the sum over the view's pixels of T * alpha,
-through the renderer's backward pass); its score is the largest over the training views (the pixels' worth it adds to
-the view that sees it most), the statistic ``densify.weight_prune`` prunes by. The model is
-then scored on its test views with the Gaussians below each threshold removed (``--thresholds``; 1/255, the
-renderer's own cut-off for a pixel, means "no training view sees it at all") and without the lowest ``--fractions``
-of them, with no training afterwards. Prints one table row per case (Markdown).
+through the renderer's backward pass, as a share of the view's pixels); its score is the largest over the training
+views (the share of the image it gives in the view that sees it most), the statistic ``densify.weight_prune`` prunes
+by. The model is then scored on its test views with the Gaussians below each threshold removed (``--thresholds``,
+shares of the image; 1/255 of one pixel, the renderer's own cut-off, is 9.8e-8 of a 200x200 image: "no training view
+sees it at all") and without the lowest ``--fractions`` of them, with no training afterwards. Prints one table row per case (Markdown).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import numpy as np
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path)
-    ap.add_argument("--thresholds", type=float, nargs="*", default=[1 / 255, 0.05])
+    ap.add_argument("--thresholds", type=float, nargs="*", default=[9.8e-8, 1.25e-6])
     ap.add_argument("--fractions", type=float, nargs="*", default=[0.1, 0.2])
     ap.add_argument("--variant", default="llvm_ad_rgb")
     args = ap.parse_args(argv)
@@ -61,7 +61,7 @@ def main(argv=None) -> int:
     for thr in args.thresholds:
         keep = score >= thr
         psnr, ssim = scored(keep)
-        print(f"| max weight over the training views < {thr:.4g} | {int((~keep).sum()):,} "
+        print(f"| max weight over the training views < {thr:.3g} of the image | {int((~keep).sum()):,} "
               f"({(~keep).mean():.1%}) | {psnr:.3f} | {ssim:.4f} |")
     for frac in args.fractions:
         keep = score > np.quantile(score, frac)

@@ -205,9 +205,9 @@ class DensifyConfig:
                                              # prune_large_after (gsplat's refine_scale2d_stop_iter, as a span);
                                              # 0: in every one until densify_until_iter
     weight_prune: float = 0.0                # at densify_until_iter, remove the Gaussians whose largest blending
-                                             # weight in a training view (the sum over its pixels of T * alpha) is
-                                             # below this (1/255: seen by no view; optim/weights.py); 0: off (the
-                                             # reference)
+                                             # weight in a training view (the sum over its pixels of T * alpha, as a
+                                             # share of the view's pixels: optim/weights.py) is below this; 0: off
+                                             # (the reference)
     reset_opacity: float = 0.01              # opacity reset: opacity = min(opacity, reset_opacity)
     reset_once: bool = False                 # a reset goes only over the Gaussians no reset has gone over yet (rows
                                              # created since the previous reset, and the initial points at the
@@ -424,7 +424,7 @@ RULES: dict[str, "Range | tuple[str, ...]"] = {
     "optim.coarse_to_fine": COARSE_TO_FINE, "optim.exposure": EXPOSURES, "optim.ssim_padding": SSIM_PADDINGS, "optim.exposure_grid": Range(2, counts=(3, 3)),
     "densify.densification_interval": _COUNT, "densify.split_count": _COUNT,
     "densify.split_scale_divisor": _POSITIVE, "densify.min_opacity": Range(0, 1, open_high=True),
-    "densify.reset_opacity": _OPEN_FRACTION, "densify.weight_prune": Range(0),
+    "densify.reset_opacity": _OPEN_FRACTION, "densify.weight_prune": Range(0, 1),
     "raster.footprint": FOOTPRINTS, "raster.near_plane": _POSITIVE, "raster.guard_band": _POSITIVE, "raster.alpha_min": Range(0, 1, open_high=True),
     "raster.alpha_max": Range(0, 1, open_low=True), "raster.transmittance_min": Range(0, 1, open_high=True),
     "mcmc.cap_max": _COUNT, "mcmc.refine_every": _COUNT, "mcmc.min_opacity": Range(0, 1, open_high=True),

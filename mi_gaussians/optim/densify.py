@@ -62,8 +62,8 @@ Deliberate differences from the reference code (each flagged where it is impleme
   ones). Clones and split children are new rows, not yet reset. Measured no better than the reference's resets or
   none (README, "Each rule changed alone").
 * ``weight_prune`` (off by default; not in the reference): at ``densify_until_iter``, the Gaussians whose largest
-  blending weight in a training view is below it are removed (:mod:`.weights`: at 1/255, those no training view shows
-  at all; the trainer supplies ``view_weights``), so that the iterations after densification do not carry them.
+  blending weight in a training view (a share of the image: :mod:`.weights`) is below it are removed (the trainer
+  supplies ``view_weights``), so that the iterations after densification do not carry them.
 * ``densify_until_iter`` bounds everything with ``step < densify_until_iter`` exactly as the reference's
   ``if iteration < opt.densify_until_iter`` block (so no opacity reset at step 15000 with the defaults).
 
@@ -359,7 +359,7 @@ class DefaultStrategy(Strategy):
         return n_clone, n_split, n_pruned
 
     def _weight_prune(self, params: GaussianAdam, st: DensifyState) -> int:
-        """Remove the Gaussians no training view shows by ``weight_prune`` pixels' worth; returns how many."""
+        """Remove the Gaussians no training view shows by a ``weight_prune`` share of its image; returns how many."""
         if self.view_weights is None:
             raise ValueError("densify.weight_prune needs the training views' weights (DefaultStrategy.view_weights)")
         self._check_size(params, st)

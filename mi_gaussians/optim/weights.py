@@ -3,9 +3,10 @@
 A Gaussian's weight in a view is the sum over the view's pixels of ``T * alpha`` (the share of each pixel's colour it
 gives). It is measured without a new kernel: the model is rendered with every colour 1 (SH degree 0, nothing
 clamped), and the gradient of the image's sum with respect to a Gaussian's DC coefficient is ``SH_C0`` times its
-weight, per channel. :func:`max_weights` keeps, per Gaussian, the largest weight over a list of cameras: "the pixels'
-worth it adds to the view that sees it most". Below 1/255 (the renderer's own cut-off for one pixel) no view sees it
-at all; ``densify.weight_prune`` removes the Gaussians below a threshold at the end of densification
+weight, per channel. :func:`max_weights` keeps, per Gaussian, the largest over a list of cameras of its weight divided
+by the view's pixel count: "the share of the image it gives in the view that sees it most", which does not depend on
+the image size (a rule in pixels would: the same Gaussian covers four times the pixels of an image twice as wide).
+``densify.weight_prune`` removes the Gaussians below a threshold at the end of densification
 (:class:`~mi_gaussians.optim.densify.DefaultStrategy`). Measured offline on trained models
 (``benchmarks/prune_scores.py``, docs/benchmarks/work_per_step.md): 10-14 % of the Gaussians of the shared objects'
 models are seen by no training view, and their removal changes no test score.
@@ -27,7 +28,8 @@ from ..raster.rasterize import render
 
 
 def max_weights(g: Gaussians, cameras: Sequence, cfg: RasterConfig = RasterConfig()) -> "mi.Float":
-    """Per Gaussian of ``g``, its largest blending weight (pixels' worth) over ``cameras`` (N values)."""
+    """Per Gaussian of ``g``, its largest blending weight over ``cameras``, each divided by its camera's pixel count
+    (a share of the image: N values in [0, 1])."""
     n = g.n
     best = dr.zeros(mi.Float, n)
     if n == 0:
@@ -44,7 +46,7 @@ def max_weights(g: Gaussians, cameras: Sequence, cfg: RasterConfig = RasterConfi
         grad = dr.grad(dc).array
         idx = dr.arange(mi.UInt32, n) * 3
         w = (dr.gather(mi.Float, grad, idx) + dr.gather(mi.Float, grad, idx + 1)
-             + dr.gather(mi.Float, grad, idx + 2)) * (1.0 / (3.0 * SH_C0))
+             + dr.gather(mi.Float, grad, idx + 2)) * (1.0 / (3.0 * SH_C0 * camera.width * camera.height))
         best = dr.maximum(best, w)
         dr.eval(best)
     return best
