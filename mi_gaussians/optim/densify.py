@@ -350,13 +350,18 @@ class DefaultStrategy(Strategy):
         is_split = concat([split_mask, dr.zeros(mi.Bool, n_all - n)])
         remove = prune | is_split
         n_pruned = _count(prune & ~is_split)
-        if n_pruned or n_split:
-            params.keep(~remove)
-            reset_done = dr.gather(mi.Bool, reset_done, dr.compress(~remove))
         st.reset_done = reset_done
+        if n_pruned or n_split:
+            self._keep_rows(params, st, ~remove)
 
         st.reset(params.n)
         return n_clone, n_split, n_pruned
+
+    @staticmethod
+    def _keep_rows(params: GaussianAdam, st: DensifyState, keep) -> None:
+        """Keep the rows where ``keep`` is true, in the parameters (and their moments) and in the per-row state."""
+        params.keep(keep)
+        st.reset_done = dr.gather(mi.Bool, st.reset_done, dr.compress(keep))
 
     def _weight_prune(self, params: GaussianAdam, st: DensifyState) -> int:
         """Remove the Gaussians no training view shows by a ``weight_prune`` share of its image; returns how many."""
@@ -366,8 +371,7 @@ class DefaultStrategy(Strategy):
         keep = self.view_weights(params.gaussians) >= float(self.cfg.weight_prune)
         removed = params.n - _count(keep)
         if removed:
-            params.keep(keep)
-            st.reset_done = dr.gather(mi.Bool, st.reset_done, dr.compress(keep))
+            self._keep_rows(params, st, keep)
             st.reset(params.n)
         return removed
 

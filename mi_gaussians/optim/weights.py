@@ -36,6 +36,7 @@ def max_weights(g: Gaussians, cameras: Sequence, cfg: RasterConfig = RasterConfi
         return best
     white = dr.full(mi.Float, 0.5 / SH_C0, 3 * n)
     no_rest = owned_tensor(np.zeros((n, 0, 3), np.float32))
+    idx = dr.arange(mi.UInt32, n) * 3
     for camera in cameras:
         dc = mi.TensorXf(mi.Float(white), (n, 3))
         dr.enable_grad(dc)
@@ -44,7 +45,6 @@ def max_weights(g: Gaussians, cameras: Sequence, cfg: RasterConfig = RasterConfi
         out = render(probe, camera, background=(0.0, 0.0, 0.0), sh_degree=0, cfg=cfg)
         dr.backward(dr.sum(out.rgb.array))
         grad = dr.grad(dc).array
-        idx = dr.arange(mi.UInt32, n) * 3
         w = (dr.gather(mi.Float, grad, idx) + dr.gather(mi.Float, grad, idx + 1)
              + dr.gather(mi.Float, grad, idx + 2)) * (1.0 / (3.0 * SH_C0 * camera.width * camera.height))
         best = dr.maximum(best, w)
