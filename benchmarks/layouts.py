@@ -6,6 +6,7 @@ percent between processes and minutes; taking turns gives every layout the same 
     python benchmarks/layouts.py RUN@DATASET                            # a trained run's model on 4 training views
     python benchmarks/layouts.py RUN                                    # the same from the run folder alone
     python benchmarks/layouts.py RUN 100000:800 1000000:1600 --variant cuda_ad_rgb --layouts 4:64 2:128 1:256
+    python benchmarks/layouts.py RUN --layouts 8:16 4:16:4 --every-kernel   # tile grids: binning's kernels count too
 
 ``RUN`` is a run folder (its ``point_cloud.ply``), ``DATASET`` the dataset folder it was trained on (read at full
 resolution, white background). A run folder alone takes 4 of the training cameras its ``cameras.json`` lists and the
@@ -53,8 +54,9 @@ def cases(specs):
                 (0.0, 0.0, 0.0)
 
 
-def blend_ms(g, cams, background) -> tuple[float, float]:
-    """Mean over the cameras of the longest kernel of the forward render and of the backward pass (the blend loops)."""
+def blend_ms(g, cams, background, every_kernel: bool = False) -> tuple[float, float]:
+    """Mean over the cameras of the longest kernel of the forward render and of the backward pass (the blend loops);
+    with ``every_kernel`` the sum of all their kernels (projection and binning too: a tile grid changes those)."""
     import drjit as dr
     import mi_gaussians as mig
 
@@ -74,8 +76,9 @@ def blend_ms(g, cams, background) -> tuple[float, float]:
             backward = dr.kernel_history()
         for k in NAMES:
             dr.disable_grad(getattr(g, k))
-        f += max(k.get("execution_time", 0.0) for k in forward)
-        b += max(k.get("execution_time", 0.0) for k in backward)
+        pick = sum if every_kernel else max
+        f += pick(k.get("execution_time", 0.0) for k in forward)
+        b += pick(k.get("execution_time", 0.0) for k in backward)
     return f / len(cams), b / len(cams)
 
 
@@ -84,7 +87,10 @@ def main(argv=None) -> int:
     ap.add_argument("cases", nargs="+", metavar="N:RES | RUN@DATASET | RUN")
     ap.add_argument("--repeats", type=int, default=5, help="timed turns per layout (after one untimed turn)")
     ap.add_argument("--variant", default="llvm_ad_rgb")
-    ap.add_argument("--layouts", nargs="+", default=["4:64", "8:16", "16:16"], metavar="PIXELS:START_LANES")
+    ap.add_argument("--layouts", nargs="+", default=["4:64", "8:16", "16:16"], metavar="PIXELS:START_LANES[:TILE_ROWS]",
+                    help="lane layouts (tile rows: 16 unless given)")
+    ap.add_argument("--every-kernel", action="store_true",
+                    help="time every kernel of the render and its backward pass, not only the blend loops")
     args = ap.parse_args(argv)
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import mitsuba as mi
@@ -97,8 +103,8 @@ def main(argv=None) -> int:
     layouts = {s: blend.LaneLayout(*map(int, s.split(":"))) for s in args.layouts}
     print(f"variant {args.variant}, {dr.thread_count()} threads; the active backend's default: "
           f"{blend.lane_layout()}")
-    print("| case | pixels per lane : start lanes | forward ms (median / best) | backward ms (median / best) "
-          "| fwd+bwd median |\n|---|---|---:|---:|---:|")
+    print("| case | pixels per lane : start lanes [: tile rows] | forward ms (median / best) "
+          "| backward ms (median / best) | fwd+bwd median |\n|---|---|---:|---:|---:|")
     default = blend.lane_layout
     try:
         for label, g, cams, bg in cases(args.cases):
@@ -106,7 +112,7 @@ def main(argv=None) -> int:
             for turn in range(args.repeats + 1):
                 for s, layout in layouts.items():
                     blend.lane_layout = lambda layout=layout: layout      # (read by make_frame at each render)
-                    f, b = blend_ms(g, cams, bg)
+                    f, b = blend_ms(g, cams, bg, args.every_kernel)
                     if turn:
                         times[s][0].append(f)
                         times[s][1].append(b)

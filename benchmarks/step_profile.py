@@ -49,7 +49,7 @@ def main(argv=None) -> int:
     import drjit as dr
 
     from mi_gaussians.optim.trainer import Trainer
-    from mi_gaussians.raster.blend import TILE, make_frame
+    from mi_gaussians.raster.blend import lane_layout
     from mi_gaussians.run_folder import CHECKPOINT, RunRecord
     from mi_gaussians.runs import training_dataset
 
@@ -83,8 +83,8 @@ def main(argv=None) -> int:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     cam = tr.views.camera(0)
-    tiles_x, tiles_y = -(-cam.width // TILE), -(-cam.height // TILE)
-    lanes = tiles_x * tiles_y * make_frame(cam.width, cam.height, tiles_x).layout.lanes_per_tile
+    tiles_x, tiles_y = lane_layout().tiles(cam.width, cam.height)
+    lanes = tiles_x * tiles_y * lane_layout().lanes_per_tile
     groups = defaultdict(lambda: [0, 0.0])
     for h in history:
         kind = str(h["type"]).split(".")[-1]

@@ -44,7 +44,7 @@ def final_model(run: Path, n_views: int, repeats: int) -> dict:
     import mitsuba as mi
 
     from mi_gaussians.model.gaussians import Gaussians
-    from mi_gaussians.raster.blend import TILE, make_frame
+    from mi_gaussians.raster.blend import lane_layout
     from mi_gaussians.raster.rasterize import render
     from mi_gaussians.run_folder import RunRecord
     from mi_gaussians.runs import model_raster_config, run_dataset
@@ -73,9 +73,9 @@ def final_model(run: Path, n_views: int, repeats: int) -> dict:
     pixels = tiles = 0
     for v in views:
         pixels += v.camera.width * v.camera.height
-        tiles_x, tiles_y = -(-v.camera.width // TILE), -(-v.camera.height // TILE)
+        tiles_x, tiles_y = lane_layout().tiles(v.camera.width, v.camera.height)
         tiles += tiles_x * tiles_y
-        lanes = tiles_x * tiles_y * make_frame(v.camera.width, v.camera.height, tiles_x).layout.lanes_per_tile
+        lanes = tiles_x * tiles_y * lane_layout().lanes_per_tile
         for rule, cfg in cfgs.items():
             out = step(v, cfg)
             res[rule]["instances"] += int(out.n_instances)

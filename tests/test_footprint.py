@@ -88,19 +88,21 @@ def test_with_a_capacity_too():
     assert _count(out_fixed.n_blended) == _count(out.n_blended)
 
 
+@pytest.mark.parametrize("rows", [16, 8, 4, 1])
 @pytest.mark.parametrize("name", ["needles", "random_deg1", "border_and_outside", "extreme_scales", "opacity_extremes",
                                   "principal_point_off_centre", "odd_size_37x53"])
-def test_every_tile_a_gaussian_reaches_holds_it(name):
+def test_every_tile_a_gaussian_reaches_holds_it(name, rows):
     """Independent truth: the float64 reference's screen-space Gaussians; every pixel where alpha reaches alpha_min
-    (less a rounding allowance) must lie in a tile whose range holds the Gaussian."""
+    (less a rounding allowance) must lie in a tile whose range holds the Gaussian, on grids of tiles of ``TILE``
+    columns by ``rows`` rows (the lane layouts')."""
     from mi_gaussians.raster.binning import bin_gaussians
     from mi_gaussians.raster.projection import GaussianArrays, ViewParams, project
 
     params, cam = (needles if name == "needles" else sf.SCENES[name])(seed=3)
     g = mig.Gaussians.from_numpy(**params)
     view = ViewParams.from_camera(cam)
-    proj = project(GaussianArrays.from_gaussians(g, g.sh_degree), view, ELLIPSE)
-    tx, ty = -(-cam.width // TILE), -(-cam.height // TILE)
+    proj = project(GaussianArrays.from_gaussians(g, g.sh_degree), view, ELLIPSE, tile_rows=rows)
+    tx, ty = -(-cam.width // TILE), -(-cam.height // rows)
     bins = bin_gaussians(proj.depth, proj.rect, proj.tile_count, tx, ty, ellipse=proj.ellipse,
                          image_size=(view.width_f, view.height_f))
     starts, gauss = np.array(bins.tile_start, np.int64), np.array(bins.gaussian, np.int64)
@@ -108,7 +110,7 @@ def test_every_tile_a_gaussian_reaches_holds_it(name):
 
     pre = preprocess(params, cam)
     ys, xs = np.mgrid[0:cam.height, 0:cam.width] + 0.5
-    tile_of = (ys.astype(int) // TILE) * tx + xs.astype(int) // TILE
+    tile_of = (ys.astype(int) // rows) * tx + xs.astype(int) // TILE
     alpha_min = RasterConfig().alpha_min
     needed = 0
     for i in np.flatnonzero(~pre["culled"]):

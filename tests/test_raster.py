@@ -326,7 +326,11 @@ from mi_gaussians.raster import blend as blend_module  # noqa: E402
 from mi_gaussians.raster.blend import LANE_LAYOUTS, LaneLayout  # noqa: E402
 
 LAYOUTS = {**LANE_LAYOUTS, "one_pixel": LaneLayout(pixels=1, start_lanes=256),
-           "two_pixels": LaneLayout(pixels=2, start_lanes=8), "column": LaneLayout(pixels=16, start_lanes=1)}
+           "two_pixels": LaneLayout(pixels=2, start_lanes=8), "column": LaneLayout(pixels=16, start_lanes=1),
+           "square_tiles": LaneLayout(pixels=8, start_lanes=16, tile_rows=16),
+           "eight_rows": LaneLayout(pixels=8, start_lanes=16, tile_rows=8),
+           "four_rows": LaneLayout(pixels=4, start_lanes=16, tile_rows=4),
+           "one_row": LaneLayout(pixels=1, start_lanes=4, tile_rows=1)}
 
 
 @pytest.fixture(params=sorted(LAYOUTS))
@@ -375,4 +379,9 @@ def test_lane_layout_rejects_what_the_kernels_cannot_map():
     with pytest.raises(ValueError, match="pixels = 3"):
         LaneLayout(pixels=3, start_lanes=16)
     with pytest.raises(ValueError, match="start_lanes = 64"):
-        LaneLayout(pixels=8, start_lanes=64)        # a tile has 32 lanes of 8 pixels
+        LaneLayout(pixels=8, start_lanes=64, tile_rows=16)   # a 16 x 16 tile has 32 lanes of 8 pixels
+    with pytest.raises(ValueError, match="tile_rows = 12"):
+        LaneLayout(pixels=4, start_lanes=16, tile_rows=12)
+    with pytest.raises(ValueError, match="pixels = 8"):
+        LaneLayout(pixels=8, start_lanes=16, tile_rows=4)    # a lane's pixels lie in one tile column
+    assert LaneLayout(pixels=4, start_lanes=16, tile_rows=4).tiles(53, 37) == (4, 10)

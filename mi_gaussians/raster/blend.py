@@ -11,7 +11,8 @@ pixel's list back to front from its last contributor, recovering T by division, 
 Gaussians that receive gradients.
 
 Layout for speed on SIMD CPUs (and coherent on GPUs): one lane handles a column of ``LaneLayout.pixels`` pixels of a
-16 x 16 tile (8 on the LLVM backend, 4 on CUDA: ``LANE_LAYOUTS``), so the lanes of a tile are contiguous and a SIMD
+tile of 16 columns (16 x 8 pixels, 8 per lane, on the LLVM backend; 16 x 16, 4 per lane, on CUDA: ``LANE_LAYOUTS``;
+the tile grid is the binning's), so the lanes of a tile are contiguous and a SIMD
 packet of lanes reads the same instance in lock-step; per-Gaussian features are packed (8 + 4 floats) and read with
 packet gathers; the backward loop of every group of ``LaneLayout.start_lanes`` lanes (16 on the CPU: an AVX-512
 packet, two AVX2 ones; the whole tile on CUDA) starts at the group's largest last-contributor index, so a packet's lanes touch the same
@@ -40,25 +41,36 @@ COL = 4      # packed per-Gaussian colour: r, g, b, (pad)
 
 @dataclass(frozen=True)
 class LaneLayout:
-    """How the blend kernels map pixels to lanes: ``pixels`` consecutive pixels of one tile column per lane (a power
-    of two dividing 16; more pixels share a lane's gathers and its one gradient scatter per Gaussian, at the price of
-    registers), and the backward pass's lanes starting together in groups of ``start_lanes`` (a power of two dividing
-    the lanes of a tile; a SIMD packet's worth or more keeps a packet's lanes on the same instance: the speed depends
-    on it, not the result)."""
+    """How the blend kernels map pixels to lanes and the image to tiles: tiles of ``TILE`` (16) columns by
+    ``tile_rows`` rows (a power of two up to 16: the grid the Gaussians are binned into, so that a tile's list holds
+    only the Gaussians that reach its pixels), ``pixels`` consecutive pixels of one tile column per lane (a power of
+    two dividing ``tile_rows``; more pixels share a lane's gathers and its one gradient scatter per Gaussian, at the
+    price of registers), and the backward pass's lanes starting together in groups of ``start_lanes`` (a power of two
+    dividing the lanes of a tile; a SIMD packet's worth or more keeps a packet's lanes on the same instance). The
+    layout changes the speed, not the result: the footprint that bins a Gaussian does not depend on the tile grid
+    (:mod:`.footprint`)."""
     pixels: int
     start_lanes: int
+    tile_rows: int = TILE
 
     def __post_init__(self):
         powers = {1, 2, 4, 8, 16, 32, 64, 128, 256}
-        if self.pixels not in powers or TILE % self.pixels:
-            raise ValueError(f"LaneLayout: pixels = {self.pixels}, expected a power of two dividing {TILE}")
+        if self.tile_rows not in powers or TILE % self.tile_rows:
+            raise ValueError(f"LaneLayout: tile_rows = {self.tile_rows}, expected a power of two dividing {TILE}")
+        if self.pixels not in powers or self.tile_rows % self.pixels:
+            raise ValueError(f"LaneLayout: pixels = {self.pixels}, expected a power of two dividing the tile's "
+                             f"{self.tile_rows} rows")
         if self.start_lanes not in powers or self.lanes_per_tile % self.start_lanes:
             raise ValueError(f"LaneLayout: start_lanes = {self.start_lanes}, expected a power of two dividing the "
                              f"{self.lanes_per_tile} lanes of a tile")
 
     @property
     def lanes_per_tile(self) -> int:
-        return TILE * TILE // self.pixels
+        return TILE * self.tile_rows // self.pixels
+
+    def tiles(self, width: int, height: int) -> tuple[int, int]:
+        """(tiles_x, tiles_y): the tile grid of a ``width`` x ``height`` image."""
+        return (width + TILE - 1) // TILE, (height + self.tile_rows - 1) // self.tile_rows
 
     @property
     def tile_shift(self) -> int:
@@ -68,9 +80,17 @@ class LaneLayout:
 # Per backend, measured (benchmarks/layouts.py, the README's "Lane layout" table; a 2-core AVX-512 VM, 16-lane
 # packets; AVX2's 8-lane packets with half the registers are not measured): on the CPU the blend loops' fwd+bwd
 # medians are 1.05-1.57x faster with 8 pixels / 16 lanes than with 4 / the tile on trained and synthetic models;
-# 16 pixels wins on synthetic scenes and loses on mi_room (register spills). CUDA keeps the layout measured on the
-# H100 (a warp of 32 lanes: 4 pixels, the tile's 64 lanes starting together).
-LANE_LAYOUTS = {"llvm": LaneLayout(pixels=8, start_lanes=16), "cuda": LaneLayout(pixels=4, start_lanes=64)}
+# 16 pixels wins on synthetic scenes and loses on mi_room (register spills). On 16 x 16 tiles a packet of 16 lanes
+# walked the whole tile's list for its half of the tile; on tiles of 16 x 8 pixels (one packet) it walks only the
+# Gaussians that reach its pixels. Projection, binning and blend forward + backward, every kernel (benchmarks/
+# layouts.py --every-kernel): 0.79-0.84x the time of 16 x 16 tiles on three trained models (200x200 and 400x400,
+# 40-63k Gaussians) and 0.87x on 100k synthetic Gaussians at 800x800, the same at 500k / 800x800, 1.13x on 1M at
+# 1600x1600 (Gaussians about 36 pixels wide: the instances nearly double and their binning costs more than the blend
+# saves). 16 x 4 tiles were faster still on the trained models (0.76-0.79x) and slower on the large synthetic scenes
+# (1.10x, 1.35x). docs/benchmarks/speed.md. CUDA keeps the layout measured on the H100 (a warp of 32 lanes: 4
+# pixels, the 16 x 16 tile's 64 lanes starting together).
+LANE_LAYOUTS = {"llvm": LaneLayout(pixels=8, start_lanes=16, tile_rows=8),
+                "cuda": LaneLayout(pixels=4, start_lanes=64)}
 
 
 def lane_layout() -> LaneLayout:
@@ -148,7 +168,7 @@ def _lane_pixels(frame: Frame, n_lanes: int):
     ty = dr.floor((tile_f + 0.5) / frame.tiles_x_f)
     tx = tile_f - ty * frame.tiles_x_f
     x = tx * TILE + mi.Float(local & 15)
-    y0 = ty * TILE + mi.Float(local >> 4) * P
+    y0 = ty * layout.tile_rows + mi.Float(local >> 4) * P
     px = x + 0.5
     pys = [y0 + (k + 0.5) for k in range(P)]
     x_ok = x < frame.width_f
@@ -369,10 +389,12 @@ class BlendOp(dr.CustomOp):
         return "mi_gaussians.Blend"
 
 
-def make_frame(width: int, height: int, tiles_x: int) -> Frame:
+def make_frame(width: int, height: int, tiles_x: int, layout: LaneLayout | None = None) -> Frame:
+    """The blend's frame of a ``width`` x ``height`` image binned into ``tiles_x`` tile columns of ``layout`` (the
+    active backend's :func:`lane_layout` when None)."""
     return Frame(width=width, height=height, width_f=dr.opaque(mi.Float, float(width)),
                  height_f=dr.opaque(mi.Float, float(height)), tiles_x_f=dr.opaque(mi.Float, float(tiles_x)),
-                 layout=lane_layout())
+                 layout=lane_layout() if layout is None else layout)
 
 
 def blend(mean2d, conic, opacity, color, depth, bins: Bins, frame: Frame, cfg: RasterConfig,

@@ -51,6 +51,7 @@ class Ellipse:
     k: "mi.Float"             # the threshold k, enlarged by the relative margin
     ext_y: "mi.Float"         # sqrt(k c): the y half-extent
     dy_r: "mi.Float"          # dy of the rightmost point, b sqrt(k / a)
+    tile_rows: int = TILE     # the tile grid's rows per tile (its columns: TILE)
 
     def touches(self, g: "mi.UInt32", tx: "mi.Int32", ty: "mi.Int32", width_f: "mi.Float",
                 height_f: "mi.Float") -> "mi.Bool":
@@ -61,9 +62,9 @@ class Ellipse:
 
         mx, my, slope, half2, inv_c = get(self.mx), get(self.my), get(self.slope), get(self.half2), get(self.inv_c)
         k, ext_y, dy_r = get(self.k), get(self.ext_y), get(self.dy_r)
-        ts = float(TILE)
-        y0 = mi.Float(ty) * ts + 0.5
-        y1 = fmin(mi.Float(ty) * ts + (ts - 1.0), height_f - 1.0) + 0.5
+        ts, rows = float(TILE), float(self.tile_rows)
+        y0 = mi.Float(ty) * rows + 0.5
+        y1 = fmin(mi.Float(ty) * rows + (rows - 1.0), height_f - 1.0) + 0.5
         x0 = mi.Float(tx) * ts + 0.5
         x1 = fmin(mi.Float(tx) * ts + (ts - 1.0), width_f - 1.0) + 0.5
         lo = fmax(y0 - my - ABS_MARGIN, -ext_y)
@@ -76,10 +77,11 @@ class Ellipse:
 
 
 def box(m: "mi.Point2f", a: "mi.Float", b: "mi.Float", c: "mi.Float", det: "mi.Float", k: "mi.Float",
-        valid: "mi.Bool", width_f: "mi.Float", height_f: "mi.Float", ellipse: bool):
-    """The tile rectangle (tx0, ty0, tx1, ty1) (inclusive, ``mi.Int32``) of the ellipse ``d^T S^-1 d <= k`` (detached
-    inputs), its tile count (0 where not ``valid`` or off screen) and, with ``ellipse``, the :class:`Ellipse` whose
-    test drops the rectangle's tiles it misses (``None`` otherwise)."""
+        valid: "mi.Bool", width_f: "mi.Float", height_f: "mi.Float", ellipse: bool, tile_rows: int = TILE):
+    """The tile rectangle (tx0, ty0, tx1, ty1) (inclusive, ``mi.Int32``; tiles of ``TILE`` columns by ``tile_rows``
+    rows) of the ellipse ``d^T S^-1 d <= k`` (detached inputs), its tile count (0 where not ``valid`` or off screen)
+    and, with ``ellipse``, the :class:`Ellipse` whose test drops the rectangle's tiles it misses (``None``
+    otherwise)."""
     ex = dr.sqrt(fmax(k * a, 0.0)) * (1 + REL_MARGIN) + ABS_MARGIN
     ey = dr.sqrt(fmax(k * c, 0.0)) * (1 + REL_MARGIN) + ABS_MARGIN
     valid = valid & dr.isfinite(ex) & dr.isfinite(ey) & dr.isfinite(m.x) & dr.isfinite(m.y)
@@ -92,8 +94,8 @@ def box(m: "mi.Point2f", a: "mi.Float", b: "mi.Float", c: "mi.Float", det: "mi.F
     ts = float(TILE)
     tx0 = mi.Int32(dr.floor(fmax(i0, 0.0) / ts))
     tx1 = mi.Int32(dr.floor(fmin(i1, width_f - 1) / ts))
-    ty0 = mi.Int32(dr.floor(fmax(j0, 0.0) / ts))
-    ty1 = mi.Int32(dr.floor(fmin(j1, height_f - 1) / ts))
+    ty0 = mi.Int32(dr.floor(fmax(j0, 0.0) / float(tile_rows)))
+    ty1 = mi.Int32(dr.floor(fmin(j1, height_f - 1) / float(tile_rows)))
     count = dr.select(valid, mi.UInt32((tx1 - tx0 + 1) * (ty1 - ty0 + 1)), 0)
     shape = None
     if ellipse:
@@ -102,5 +104,5 @@ def box(m: "mi.Point2f", a: "mi.Float", b: "mi.Float", c: "mi.Float", det: "mi.F
         ke = fmax(k, 0.0) * (1 + REL_MARGIN + CONDITION_MARGIN * a_ * c_ / fmax(det, 1e-30)) ** 2
         inv_c = dr.rcp(c_)
         shape = Ellipse(mx=m.x, my=m.y, slope=b * inv_c, half2=fmax(det, 0.0) * inv_c, inv_c=inv_c, k=ke,
-                        ext_y=dr.sqrt(ke * c_), dy_r=b * dr.sqrt(ke / a_))
+                        ext_y=dr.sqrt(ke * c_), dy_r=b * dr.sqrt(ke / a_), tile_rows=tile_rows)
     return (tx0, ty0, tx1, ty1), count, valid, shape

@@ -37,6 +37,7 @@ from ..data.camera import Camera
 from ..drjit_utils import fclamp, fmax, quaternion_to_matrix, sigmoid
 from ..model.gaussians import Gaussians
 from ..model.sh import eval_sh_colors, gather_sh_coeffs
+from .blend import TILE
 from .footprint import Ellipse, box
 
 
@@ -121,7 +122,9 @@ def _compensation(det_sigma, inv_det):
     return dr.select(positive, dr.sqrt(dr.select(positive, ratio, 1.0)), 0.0)
 
 
-def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig) -> Projected:
+def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig, tile_rows: int = TILE) -> Projected:
+    """Project activated Gaussians for a view; the tile rectangles are those of a grid of ``TILE`` columns by
+    ``tile_rows`` rows per tile (the blend's :class:`~.blend.LaneLayout`)."""
     means, s, quats, opacity = ga.means, ga.sigmas, ga.quats, ga.opacity
 
     # Camera space
@@ -178,7 +181,7 @@ def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig) -> Projecte
         k2 = 2.0 * dr.log(o * (1.0 / cfg.alpha_min))
         valid = in_front & (dt > 0) & (k2 >= 0)
         rect, count, valid, ellipse = box(dr.detach(mean2d), a, b, c, dt, k2, valid, view.width_f, view.height_f,
-                                          ellipse=cfg.footprint == "ellipse")
+                                          ellipse=cfg.footprint == "ellipse", tile_rows=tile_rows)
         mid = 0.5 * (a + c)
         lam = mid + dr.sqrt(fmax(mid * mid - dt, 0.1))
         radii = dr.select(valid, mi.Int32(dr.ceil(3.0 * dr.sqrt(lam))), 0)

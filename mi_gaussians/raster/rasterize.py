@@ -25,7 +25,8 @@ from ..data.camera import Camera
 from ..drjit_utils import fmax
 from ..model.gaussians import Gaussians
 from .binning import Bins, bin_gaussians
-from .blend import TILE, BlendStats, blend, make_frame
+from . import blend as _blend_module
+from .blend import BlendStats, blend, make_frame
 from .projection import GaussianArrays, ViewParams, project
 
 
@@ -91,10 +92,11 @@ def render_arrays(ga: GaussianArrays | None, camera: Camera | ViewParams, backgr
     bg = _background(background)
     view = camera if isinstance(camera, ViewParams) else ViewParams.from_camera(camera)
     W, H = view.width, view.height
-    tiles_x, tiles_y = (W + TILE - 1) // TILE, (H + TILE - 1) // TILE
+    layout = _blend_module.lane_layout()      # (looked up at each render: benchmarks and tests swap it)
+    tiles_x, tiles_y = layout.tiles(W, H)
 
     if ga is not None and dr.width(ga.opacity) > 0:
-        proj = project(ga, view, cfg)
+        proj = project(ga, view, cfg, layout.tile_rows)
         bins = bin_gaussians(proj.depth, proj.rect, proj.tile_count, tiles_x, tiles_y, capacity, proj.ellipse,
                              (view.width_f, view.height_f))
         radii = proj.radii
@@ -104,7 +106,7 @@ def render_arrays(ga: GaussianArrays | None, camera: Camera | ViewParams, backgr
                     n_instances=0, tiles_x=tiles_x, tiles_y=tiles_y)
         radii = dr.zeros(mi.Int32, 0)
 
-    frame = make_frame(W, H, tiles_x)
+    frame = make_frame(W, H, tiles_x, layout)
     stats = BlendStats()
     npix = W * H
     if capacity is None and bins.n_instances == 0:
