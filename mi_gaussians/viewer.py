@@ -211,8 +211,9 @@ def _tile_heat_map(g, cam: Camera, sh_degree, raster: RasterConfig) -> np.ndarra
     from .raster.projection import GaussianArrays, ViewParams, project
 
     W, H = cam.width, cam.height
-    rows = lane_layout().tile_rows
-    tx, ty = lane_layout().tiles(W, H)
+    layout = lane_layout()
+    rows = layout.tile_rows
+    tx, ty = layout.tiles(W, H)
     counts = np.zeros(tx * ty)
     if g.n:
         view = ViewParams.from_camera(cam)

@@ -11,12 +11,12 @@ pixel's list back to front from its last contributor, recovering T by division, 
 Gaussians that receive gradients.
 
 Layout for speed on SIMD CPUs (and coherent on GPUs): one lane handles a column of ``LaneLayout.pixels`` pixels of a
-tile of 16 columns (16 x 8 pixels, 8 per lane, on the LLVM backend; 16 x 16, 4 per lane, on CUDA: ``LANE_LAYOUTS``;
-the tile grid is the binning's), so the lanes of a tile are contiguous and a SIMD
-packet of lanes reads the same instance in lock-step; per-Gaussian features are packed (8 + 4 floats) and read with
-packet gathers; the backward loop of every group of ``LaneLayout.start_lanes`` lanes (16 on the CPU: an AVX-512
-packet, two AVX2 ones; the whole tile on CUDA) starts at the group's largest last-contributor index, so a packet's lanes touch the same
-Gaussian together, and gradients are accumulated with packet ``scatter_add`` in Dr.Jit's ``Expand`` mode (no atomics
+tile of 16 columns (the binning's tile grid: 16 x 8 pixels, 8 per lane, on the LLVM backend; 16 x 16, 4 per lane, on
+CUDA: ``LANE_LAYOUTS``), so the lanes of a tile are contiguous and a SIMD packet of lanes reads the same instance in
+lock-step; per-Gaussian features are packed (8 + 4 floats) and read with packet gathers; the backward loop of every
+group of ``LaneLayout.start_lanes`` lanes (16 on the CPU: an AVX-512 packet, two AVX2 ones; the whole tile on CUDA)
+starts at the group's largest last-contributor index, so a packet's lanes touch the same Gaussian together, and
+gradients are accumulated with packet ``scatter_add`` in Dr.Jit's ``Expand`` mode (no atomics
 on CPU). The layout changes only the speed: images are identical (for finite inputs), gradients equal up to the order
 of float sums.
 """
@@ -77,7 +77,7 @@ class LaneLayout:
         return self.lanes_per_tile.bit_length() - 1
 
 
-# Per backend, measured (benchmarks/layouts.py, the README's "Lane layout" table; a 2-core AVX-512 VM, 16-lane
+# Per backend, measured (benchmarks/layouts.py, docs/benchmarks/speed.md's "Lane layout" table; a 2-core AVX-512 VM, 16-lane
 # packets; AVX2's 8-lane packets with half the registers are not measured): on the CPU the blend loops' fwd+bwd
 # medians are 1.05-1.57x faster with 8 pixels / 16 lanes than with 4 / the tile on trained and synthetic models;
 # 16 pixels wins on synthetic scenes and loses on mi_room (register spills). On 16 x 16 tiles a packet of 16 lanes
