@@ -36,6 +36,9 @@ EXPOSURES = ("off", "affine", "bilateral")
 #: the depth at which the cameras see the initial points (the default), 'scene' the larger of that and the cameras'
 #: spread, 'cameras' the spread alone (the reference's, gsplat's).
 EXTENTS = ("scene", "cameras", "depth")
+#: densify.empty_background: the rules for an object on an empty background ('auto': when the images have transparent
+#: pixels; optim/densify.py)
+EMPTY_BACKGROUNDS = ("auto", "on", "off")
 #: ``OptimConfig.pose_opt_pivot``: where a pose correction turns its camera (optim/pose.py).
 POSE_PIVOTS = ("centre", "depth")
 #: ``OptimConfig.ssim_padding``: 'same', the reference's SSIM (zero padding, the mean over every pixel); 'valid',
@@ -201,9 +204,17 @@ class DensifyConfig:
     max_screen_fraction: float = 0.0         # max 2D radius above this fraction of max(width, height) in any view since
                                              # the last densification (gsplat's prune_scale2d, 0.15 when it is on);
                                              # 0: off, the reference's effective rule (its 20 px test never fires)
-    screen_prune_span: int = 0               # ... only in the densifications of this many iterations after
+                                             # -- except on an empty background, see empty_screen_fraction
+    screen_prune_span: int = 500             # ... only in the densifications of this many iterations after
                                              # prune_large_after (gsplat's refine_scale2d_stop_iter, as a span);
                                              # 0: in every one until densify_until_iter
+    empty_background: str = "auto"           # an object on an empty background (EMPTY_BACKGROUNDS): 'auto' when a
+                                             # training image has transparent pixels (alpha, a mask), 'on', 'off'
+                                             # (the reference). There the floaters of the random initial points
+                                             # show: an opacity reset at densify_from_iter on any background (the
+                                             # reference: on white only), and the screen-size prune at
+                                             # empty_screen_fraction when max_screen_fraction is 0
+    empty_screen_fraction: float = 0.1       # (the reference's 20 px of a 200-pixel image, relative); 0: no prune
     weight_prune: float = 0.0                # at densify_until_iter, remove the Gaussians whose largest blending
                                              # weight in a training view (the sum over its pixels of T * alpha, as a
                                              # share of the view's pixels: optim/weights.py) is below this; 0: off
@@ -300,6 +311,11 @@ class TrainConfig:
         if isinstance(dens, dict) and "opacity_reset_interval" in dens and "prune_large_after" not in dens:
             # (a record from before prune_large_after: its large-Gaussian prunes began after the first reset)
             d = {**d, "densify": {**dens, "prune_large_after": dens["opacity_reset_interval"]}}
+        if isinstance(dens, dict) and "opacity_reset_interval" in dens and "empty_background" not in dens:
+            # (a record from before the empty-background rules: it trained without them, and its screen-size prune,
+            # when it had one, pruned in every densification)
+            d = {**d, "densify": {**d["densify"], "empty_background": "off",
+                                  "screen_prune_span": dens.get("screen_prune_span", 0)}}
         data = d.get("data") if isinstance(d, dict) else None
         if isinstance(data, dict) and "extent" not in data:
             # (a record from before data.extent: its lengths were fractions of the cameras' spread)
@@ -425,6 +441,7 @@ RULES: dict[str, "Range | tuple[str, ...]"] = {
     "densify.densification_interval": _COUNT, "densify.split_count": _COUNT,
     "densify.split_scale_divisor": _POSITIVE, "densify.min_opacity": Range(0, 1, open_high=True),
     "densify.reset_opacity": _OPEN_FRACTION, "densify.weight_prune": Range(0, 1),
+    "densify.empty_background": EMPTY_BACKGROUNDS, "densify.empty_screen_fraction": Range(0, 1),
     "raster.footprint": FOOTPRINTS, "raster.near_plane": _POSITIVE, "raster.guard_band": _POSITIVE, "raster.alpha_min": Range(0, 1, open_high=True),
     "raster.alpha_max": Range(0, 1, open_low=True), "raster.transmittance_min": Range(0, 1, open_high=True),
     "mcmc.cap_max": _COUNT, "mcmc.refine_every": _COUNT, "mcmc.min_opacity": Range(0, 1, open_high=True),

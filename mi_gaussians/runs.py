@@ -192,6 +192,7 @@ def _train_locked(src: Path, out: Path, cfg: TrainConfig, record, overwrite, cac
         trainer = Trainer(ds, cfg, out, progress=progress, given_cameras=given)     # (decodes the training images)
     if record is None and log is not None:
         _note_if_never_refined(trainer, cfg, log)
+        _say_empty_background(trainer, cfg, log)
     watcher = watch(trainer, ds) if watch is not None else None
     if stop is not None:
         stop.trainer = trainer                        # (from now on a signal lets the iteration finish)
@@ -320,6 +321,22 @@ def _note_if_never_refined(trainer, cfg: TrainConfig, log: Callable[[str], None]
         said = ", ".join(f"{fields[0]}.{f} = {getattr(section, f):,}" for f in fields[1])
         log(f"note: no densification falls within the {n:,} iterations ({said}): the run trains the initial "
             f"{trainer.params.n:,} Gaussians and adds none")
+
+
+def _say_empty_background(trainer, cfg: TrainConfig, log: Callable[[str], None]) -> None:
+    """One line when the run fits an object on an empty background with the default strategy (its rules for the
+    floaters of the empty space: optim/densify.py)."""
+    strategy = trainer.strategy
+    if not getattr(strategy, "empty_background", False):
+        return
+    why = ("the training images have transparent pixels" if cfg.densify.empty_background == "auto"
+           else "densify.empty_background=on")
+    prune = (f"the screen-size prune at {strategy.screen_fraction:g} of the image" if strategy.screen_fraction > 0
+             else "no screen-size prune")
+    reset = (f"an opacity reset at iteration {cfg.densify.densify_from_iter:,}"
+             if cfg.densify.opacity_reset_interval > 0 else "no opacity reset (densify.opacity_reset_interval=0)")
+    log(f"an object on an empty background ({why}): {reset} and {prune} (densify.empty_background=off: the "
+        "reference's rules)")
 
 
 def check_resumed_dataset(src: Path, out: Path, record: RunRecord, fingerprint: str | None,

@@ -68,6 +68,11 @@ RULES = (
                                          and c.densify.densify_until_iter < c.optim.iterations,
                                          "it acts at densify.densify_until_iter in the default strategy, which this "
                                          "run does not reach or use")),
+    Rule("densify.empty_screen_fraction", _unless(lambda c, _: c.densify.empty_background != "off"
+                                                  and c.densify.max_screen_fraction == 0,
+                                                  "it is the screen-size prune on an empty background when "
+                                                  "densify.max_screen_fraction is 0, and this run has "
+                                                  "densify.empty_background off or its own max_screen_fraction")),
     Rule("scene.*", _SCENE),
     Rule("data.resolution", _FOLDER),
     Rule("data.init", _FOLDER),

@@ -181,10 +181,14 @@ def test_a_record_round_trips_and_older_records_still_load(tmp_path):
     del saved["train"]["densify"]["prune_large_after"], saved["train"]["densify"]["max_screen_fraction"]
     saved["train"]["densify"].update(opacity_reset_interval=1000, max_screen_size=20.0)
     del saved["train"]["data"]["extent"]                  # (from before data.extent: the cameras' spread)
+    # (from before the empty-background rules and screen_prune_span: neither, a prune in every densification)
+    del saved["train"]["densify"]["empty_background"], saved["train"]["densify"]["screen_prune_span"]
     (tmp_path / "config.json").write_text(json.dumps(saved))
     old = run_folder.RunRecord.read(tmp_path, "missing").train
     assert old.mcmc == config.MCMCConfig()
     assert old.densify.prune_large_after == 1000 and old.densify.max_screen_fraction == 0
+    assert old.densify.empty_background == "off" and old.densify.screen_prune_span == 0
+    assert cfg.densify.empty_background == "auto" and cfg.densify.screen_prune_span == 500
     assert old.data.extent == "cameras" and cfg.data.extent == "depth"
     with pytest.raises(config.SettingError, match="data.extent.*'rig' is not one of scene, cameras, depth"):
         cfg.with_settings(["data.extent=rig"])

@@ -182,11 +182,12 @@ def test_clone_split_prune_counts_values_and_moments():
     assert not st["max_screen"].any()
 
 
-def present_after(step, cfg, out=None, warmup=None):
+def present_after(step, cfg, out=None, warmup=None, empty=False):
     """Whether the world-huge row 5 and the screen-huge row 6 of the crafted scene survive a densification at
-    ``step`` (after one statistics-only iteration ``warmup`` when given), and the step's info."""
+    ``step`` (after one statistics-only iteration ``warmup`` when given; ``empty``: on an empty background), and the
+    step's info."""
     params, crafted_out = crafted()
-    s = DefaultStrategy(cfg, EXTENT)
+    s = DefaultStrategy(cfg, EXTENT, empty_background=empty)
     state = s.initialize_state(params.n)
     if warmup is not None:
         s.step_post_backward(params, state, warmup, crafted_out)
@@ -227,6 +228,29 @@ def test_screen_size_prune_is_relative_to_the_image():
     for width, height, pruned in ((100, 100, True), (200, 200, False), (200, 50, False), (50, 120, True)):
         present, _ = present_after(3100, cfg, fake_out(radii, grads, width=width, height=height))
         assert present[1] is not pruned, (width, height)
+
+
+def test_on_an_empty_background_the_screen_size_prune_is_on_at_its_own_fraction():
+    """An object on an empty background (issue 52): the screen-size test prunes at ``empty_screen_fraction`` when
+    ``max_screen_fraction`` is 0, in the span after ``prune_large_after``; ``max_screen_fraction`` > 0 sets the
+    threshold; ``empty_screen_fraction`` 0 turns it off; not on an empty background, the reference (no prune)."""
+    cfg = DensifyConfig()
+    assert cfg.empty_screen_fraction == 0.1 and cfg.screen_prune_span == 500 and cfg.max_screen_fraction == 0
+    assert DefaultStrategy(cfg, EXTENT, empty_background=True).screen_fraction == 0.1
+    assert DefaultStrategy(cfg, EXTENT).screen_fraction == 0
+
+    def screen_huge_kept(cfg, empty, step=3100, size=100):       # row 6: 30 px, 0.3 of a 100-pixel view
+        radii, grads = [r for _, _, r in SCENE], [gx for _, gx, _ in SCENE]
+        return present_after(step, cfg, fake_out(radii, grads, width=size, height=size), empty=empty)[0][1]
+
+    assert not screen_huge_kept(cfg, True)                                # 0.3 > 0.1: pruned
+    assert not screen_huge_kept(cfg, True, size=200)                      # 0.15 > 0.1
+    assert screen_huge_kept(cfg, True, size=400)                          # 0.075 of a 400-pixel view: kept
+    assert screen_huge_kept(cfg, False)                                   # the reference: kept
+    assert screen_huge_kept(cfg, True, step=3600)                         # past the span of 500: kept
+    assert screen_huge_kept(dataclasses.replace(cfg, empty_screen_fraction=0.0), True)
+    assert screen_huge_kept(dataclasses.replace(cfg, max_screen_fraction=0.2), True, size=200)   # its own: 0.15
+    assert not screen_huge_kept(dataclasses.replace(cfg, max_screen_fraction=0.2), False)        # 0.3 > 0.2
 
 
 def test_the_screen_size_prune_can_be_held_to_a_span_after_prune_large_after():
@@ -358,6 +382,18 @@ def test_opacity_reset_schedule(white, step, every, expect):
     assert info.opacity_reset == expect
     p = 1 / (1 + np.exp(-np.array(params["opacities"], np.float64)))
     np.testing.assert_allclose(p, 0.01 if expect else 0.5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("white, empty, expect", [(False, False, False), (True, False, True), (False, True, True),
+                                                   (True, True, True)])
+def test_on_an_empty_background_the_opacities_are_reset_at_densify_from_iter(white, empty, expect):
+    """The reference resets at densify_from_iter on a white background, where the random points' floaters show;
+    on an empty background they show over any colour (issue 52), so the reset comes there too."""
+    params = build([dict(sigma=0.01, opacity=0.5)] * 2)
+    s = DefaultStrategy(DensifyConfig(), EXTENT, white_background=white, empty_background=empty)
+    assert s.refines_at(500) == expect
+    info = s.step_post_backward(params, s.initialize_state(params.n), 500, fake_out([3, 3], [LOW, LOW]))
+    assert info.opacity_reset == expect
 
 
 def test_nothing_happens_from_densify_until_iter_on():

@@ -25,11 +25,13 @@ def small_config(iterations=300, **kw) -> TrainConfig:
         data=DataConfig(background=(1.0, 1.0, 1.0), random_points=5000),
         optim=OptimConfig(iterations=iterations, position_lr_max_steps=iterations, sh_degree=1,
                           sh_increase_interval=100),
-        # (the reference's screen-size rule, off, whatever the default: on this schedule the large-Gaussian prunes
-        # begin at 150, while the model is still mostly its random points, and a relative screen-size prune of 0.1
-        # removes them before they split: 25.7 -> 15.3 dB in test_psnr_rises_and_outputs_are_written)
+        # (the reference's rules, whatever the default: the images have alpha, but on this schedule the
+        # large-Gaussian prunes begin at 150, while the model is still mostly its random points, and the
+        # empty-background screen-size prune of 0.1 removes them before they split: 25.7 -> 15.3 dB in
+        # test_psnr_rises_and_outputs_are_written; test_an_object_on_an_empty_background_gets_its_rules checks them)
         densify=DensifyConfig(densify_from_iter=100, densify_until_iter=iterations // 2, densification_interval=50,
-                              opacity_reset_interval=150, prune_large_after=150, max_screen_fraction=0.0),
+                              opacity_reset_interval=150, prune_large_after=150, max_screen_fraction=0.0,
+                              empty_background="off"),
         checkpoint_every=kw.pop("checkpoint_every", 100), eval_every=100, save_iterations=(), **kw)
 
 
@@ -193,6 +195,32 @@ def test_divergence_stops_and_keeps_the_checkpoint(scene, tmp_path, freeze):
         meta = json.loads(bytes(z["meta"]).decode())
         assert meta["step"] == 40
         assert np.all(np.isfinite(z["param/sh_dc"]))
+
+
+def test_an_object_on_an_empty_background_gets_its_rules(scene, tmp_path):
+    """densify.empty_background 'auto' turns the empty-background rules on when a training image has transparent
+    pixels (the synthetic scene's RGBA images), not on the same images made opaque; 'on' and 'off' force them."""
+    from PIL import Image
+
+    from mi_gaussians.optim.trainer import Trainer
+
+    def rules(root, setting, background=(0.0, 0.0, 0.0)):
+        cfg = small_config(20)
+        cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, background=background),
+                                  densify=dataclasses.replace(DensifyConfig(), empty_background=setting))
+        tr = Trainer(load(root, cfg), cfg, tmp_path / f"run_{setting}_{root.name}", progress=False)
+        return tr.empty_background, tr.strategy.screen_fraction, tr.strategy.refines_at(500)
+
+    assert rules(scene, "auto") == (True, 0.1, True)          # (the reset at densify_from_iter, on black)
+    assert rules(scene, "off") == (False, 0.0, False)
+    assert rules(scene, "off", (1.0, 1.0, 1.0)) == (False, 0.0, True)    # (the reference's reset on white)
+    import shutil
+    opaque = tmp_path / "opaque"
+    shutil.copytree(scene, opaque)
+    for png in opaque.rglob("*.png"):
+        Image.open(png).convert("RGB").save(png)
+    assert rules(opaque, "auto") == (False, 0.0, False)
+    assert rules(opaque, "on") == (True, 0.1, True)
 
 
 def test_random_background_recomposites_rgba_targets(scene, tmp_path):

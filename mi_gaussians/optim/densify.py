@@ -141,21 +141,31 @@ def _count(mask) -> int:
 class DefaultStrategy(Strategy):
     """The reference 3DGS densification (see the module docstring). ``extent``: the scene extent
     (``Dataset.scene_extent`` under the run's ``data.extent``); ``seed``: of the split samples; ``white_background``:
-    the reference also resets the opacities at ``densify_from_iter`` when it trains on a white background."""
+    the reference also resets the opacities at ``densify_from_iter`` when it trains on a white background;
+    ``empty_background``: the run fits an object on an empty background (``densify.empty_background`` resolved by
+    the trainer): that reset on any background, and the screen-size prune at ``empty_screen_fraction`` unless
+    ``max_screen_fraction`` sets it."""
 
-    def __init__(self, cfg: DensifyConfig, extent: float, seed: int = 0, white_background: bool = False):
+    def __init__(self, cfg: DensifyConfig, extent: float, seed: int = 0, white_background: bool = False,
+                 empty_background: bool = False):
         check_section("densify", cfg)
         self.cfg = cfg
         self.extent = float(extent)
         self.seed = int(seed)
         self.white_background = bool(white_background)
+        self.empty_background = bool(empty_background)
+        #: the screen-size prune's threshold (a fraction of the image), 0 when it is off
+        self.screen_fraction = float(cfg.max_screen_fraction if cfg.max_screen_fraction > 0 or not empty_background
+                                     else cfg.empty_screen_fraction)
         #: ``gaussians -> mi.Float``: each Gaussian's largest blending weight over the training views
         #: (:func:`mi_gaussians.optim.weights.max_weights` on them); the trainer sets it (``densify.weight_prune``)
         self.view_weights: Callable | None = None
 
     @classmethod
-    def from_config(cls, cfg, extent: float, white_background: bool) -> "DefaultStrategy":
-        return cls(cfg.densify, extent, seed=cfg.seed + 2, white_background=white_background)
+    def from_config(cls, cfg, extent: float, white_background: bool,
+                    empty_background: bool = False) -> "DefaultStrategy":
+        return cls(cfg.densify, extent, seed=cfg.seed + 2, white_background=white_background,
+                   empty_background=empty_background)
 
     # ------------------------------------------------------------------ state
     def initialize_state(self, n: int) -> DensifyState:
@@ -269,7 +279,7 @@ class DefaultStrategy(Strategy):
         cfg = self.cfg
         every = cfg.opacity_reset_interval
         return every > 0 and step < cfg.densify_until_iter and (
-            step % every == 0 or (self.white_background and step == cfg.densify_from_iter))
+            step % every == 0 or ((self.white_background or self.empty_background) and step == cfg.densify_from_iter))
 
     def _weight_prunes_at(self, step: int) -> bool:
         return self.cfg.weight_prune > 0 and step == self.cfg.densify_until_iter
@@ -344,9 +354,9 @@ class DefaultStrategy(Strategy):
         if step > cfg.prune_large_after:
             prune = prune | (_max3(dr.exp(_rows3(params["scales"]))) > float(cfg.max_world_scale) * self.extent)
             span = cfg.screen_prune_span
-            if cfg.max_screen_fraction > 0 and (span <= 0 or step <= cfg.prune_large_after + span):
-                # (off by default: dead code in the reference, see the top)
-                prune = prune | (max_screen > float(cfg.max_screen_fraction))
+            if self.screen_fraction > 0 and (span <= 0 or step <= cfg.prune_large_after + span):
+                # (off by default but on an empty background: dead code in the reference, see the top)
+                prune = prune | (max_screen > self.screen_fraction)
         is_split = concat([split_mask, dr.zeros(mi.Bool, n_all - n)])
         remove = prune | is_split
         n_pruned = _count(prune & ~is_split)

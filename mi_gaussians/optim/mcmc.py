@@ -95,7 +95,8 @@ class MCMCStrategy(Strategy):
         self.max_gaussians = int(cfg.cap_max)
 
     @classmethod
-    def from_config(cls, cfg, extent: float, white_background: bool) -> "MCMCStrategy":
+    def from_config(cls, cfg, extent: float, white_background: bool,
+                    empty_background: bool = False) -> "MCMCStrategy":
         return cls(cfg.mcmc, seed=cfg.seed + 2)
 
     # ------------------------------------------------------------------ state

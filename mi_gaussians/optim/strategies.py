@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..config import STRATEGIES, TrainConfig
+from ..config import EMPTY_BACKGROUNDS, STRATEGIES, TrainConfig
 from ..data.dataset import Dataset
 from ..model.gaussians import Gaussians
 from .densify import DefaultStrategy
@@ -17,18 +17,28 @@ from .weights import max_weights
 CLASSES: dict[str, type[Strategy]] = {"default": DefaultStrategy, "mcmc": MCMCStrategy}
 
 
-def make_strategy(cfg: TrainConfig, extent: float, white_background: bool, train_cameras=()) -> Strategy:
+def make_strategy(cfg: TrainConfig, extent: float, white_background: bool, train_cameras=(),
+                  empty_background: bool = False) -> Strategy:
     """The densification strategy ``cfg.strategy`` names, built from its section of ``cfg``; ``train_cameras``: the
-    training views' cameras, whose blending weights ``densify.weight_prune`` measures (:mod:`.weights`)."""
+    training views' cameras, whose blending weights ``densify.weight_prune`` measures (:mod:`.weights`);
+    ``empty_background``: whether the run fits an object on an empty background (:func:`empty_background`)."""
     if cfg.strategy not in CLASSES:
         raise ValueError(f"unknown densification strategy {cfg.strategy!r} (expected one of {', '.join(STRATEGIES)})")
-    strategy = CLASSES[cfg.strategy].from_config(cfg, extent, white_background)
+    strategy = CLASSES[cfg.strategy].from_config(cfg, extent, white_background, empty_background)
     if isinstance(strategy, DefaultStrategy) and cfg.densify.weight_prune > 0:
         cameras = list(train_cameras)
         if not cameras:
             raise ValueError("densify.weight_prune needs the training cameras")
         strategy.view_weights = lambda g: max_weights(g, cameras, cfg.raster)
     return strategy
+
+
+def empty_background(setting: str, transparent: bool) -> bool:
+    """Whether a run fits an object on an empty background: ``densify.empty_background`` ('on', 'off', or 'auto':
+    when ``transparent``, a training image has transparent pixels)."""
+    if setting not in EMPTY_BACKGROUNDS:
+        raise ValueError(f"densify.empty_background: {setting!r}, expected one of {', '.join(EMPTY_BACKGROUNDS)}")
+    return setting == "on" or (setting == "auto" and bool(transparent))
 
 
 def initial_gaussians(ds: Dataset, sh_degree: int, strategy: Strategy | None = None, seed: int = 0) -> Gaussians:

@@ -80,9 +80,11 @@ class Strategy:
     row_padding: bool = False
 
     @classmethod
-    def from_config(cls, cfg, extent: float, white_background: bool) -> "Strategy":
+    def from_config(cls, cfg, extent: float, white_background: bool, empty_background: bool = False) -> "Strategy":
         """The strategy of a run: ``cfg`` is its :class:`~mi_gaussians.config.TrainConfig` (the strategy reads its
-        own section), ``extent`` the scene extent, ``white_background`` whether it trains on white."""
+        own section), ``extent`` the scene extent, ``white_background`` whether it trains on white,
+        ``empty_background`` whether it fits an object on an empty background (``densify.empty_background``
+        resolved)."""
         raise NotImplementedError
 
     def initialize_state(self, n: int):

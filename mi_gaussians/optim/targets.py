@@ -25,11 +25,15 @@ class TrainingViews:
     def __init__(self, ds: Dataset, cfg: TrainConfig):
         o = cfg.optim
         self.cameras = [v.camera for v in ds.train]
-        images, brightest = [], 0.0
+        images, alphas, brightest = [], [], 0.0
         for v in ds.train:
-            image = v.load_image()
+            image, alpha = v.loader.load(v.image_path)      # (one decode for both; View.load_image / load_alpha)
             brightest = max(brightest, float(np.max(image, initial=0.0)))
             images.append(image)
+            alphas.append(alpha)
+        #: whether a training image has transparent pixels (alpha below 1/2: an object on an empty background, whose
+        #: rules densify.empty_background 'auto' turns on)
+        self.transparent = any(a is not None and float(np.min(a, initial=1.0)) < 0.5 for a in alphas)
         if brightest <= 1e-6:
             raise ValueError(f"{ds.root}: every training image is black: there is nothing to fit (a scene whose "
                              "lights are missing, hidden or turned off by its -D values?)")
@@ -50,9 +54,11 @@ class TrainingViews:
         # (only where an image has alpha: on opaque images it would ask for nothing but full coverage)
         self.transparency = None
         if o.random_background or o.alpha_weight > 0:
-            alphas = [v.load_alpha() for v in ds.train]
+            alphas = [np.ones((c.height, c.width), np.float32) if a is None else a
+                      for a, c in zip(alphas, self.cameras)]
             if o.random_background or any(float(np.min(a, initial=1.0)) < 1.0 for a in alphas):
                 self.transparency = [owned_tensor(1.0 - a[..., None]) for a in alphas]
+        del alphas
         self.scale = 1
         self._scaled: dict = {}                     # the current scale's targets, by kind (made on first use)
         self._views: dict = {}                      # (scale, view) -> ViewParams, built on first use

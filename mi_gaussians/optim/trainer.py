@@ -39,7 +39,7 @@ from .guard import TrainingDiverged  # noqa: F401  (raised here; importers take 
 from .pose import PoseDeltas, pivot_depths
 from .loop_state import History, LoopStats, Pending, TrainingStopped, ViewSampler  # noqa: F401  (TrainingStopped:
 # raised here, and importers take it from this module)
-from .strategies import initial_gaussians, make_strategy
+from .strategies import empty_background, initial_gaussians, make_strategy
 from .targets import TrainingViews
 from .schedules import depth_weight, position_lr, sh_degree_at
 from .train_step import (StepInputs, TrainStep, capacity_for, composite_target, pad_rows, row_class, training_loss,
@@ -74,8 +74,11 @@ class Trainer:
         self.sampler = ViewSampler(len(ds.train), cfg.seed)
         # what each step takes of each training view: its camera and target, at the coarse-to-fine schedule's scale
         self.views = TrainingViews(ds, cfg)
+        #: whether the run fits an object on an empty background (densify.empty_background; optim/densify.py)
+        self.empty_background = empty_background(cfg.densify.empty_background, self.views.transparent)
         self.strategy = make_strategy(cfg, self.extent, white_background=self.background == (1.0, 1.0, 1.0),
-                                      train_cameras=[v.camera for v in ds.train])
+                                      train_cameras=[v.camera for v in ds.train],
+                                      empty_background=self.empty_background)
         self.params = GaussianAdam(initial_gaussians(ds, cfg.optim.sh_degree, self.strategy, seed=cfg.seed + 3),
                                    cfg.optim, self.extent)
         self.strategy_state = self.strategy.initialize_state(self.params.n)
