@@ -221,6 +221,18 @@ def test_an_object_on_an_empty_background_gets_its_rules(scene, tmp_path):
         Image.open(png).convert("RGB").save(png)
     assert rules(opaque, "auto") == (False, 0.0, False)
     assert rules(opaque, "on") == (True, 0.1, True)
+    # a new run says so in one line (what it does, and the setting that gives the reference's rules)
+    from mi_gaussians.runs import train_run
+
+    lines = []
+    cfg = small_config(20)
+    cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, background=(0.0, 0.0, 0.0), init="cube"),
+                              densify=DensifyConfig())
+    train_run(scene, tmp_path / "said", cfg, progress=False, log=lines.append)
+    assert [ln for ln in lines if "empty background" in ln] == [
+        "an object on an empty background (the training images have transparent pixels): an opacity reset at "
+        "iteration 500 and the screen-size prune at 0.1 of the image (densify.empty_background=off: the reference's "
+        "rules)"]
 
 
 def test_random_background_recomposites_rgba_targets(scene, tmp_path):
