@@ -25,15 +25,18 @@ class TrainingViews:
     def __init__(self, ds: Dataset, cfg: TrainConfig):
         o = cfg.optim
         self.cameras = [v.camera for v in ds.train]
+        #: whether a training image has transparent pixels (alpha below 1/2: an object on an empty background, whose
+        #: rules densify.empty_background 'auto' turns on)
+        self.transparent = False
+        keep_alpha = o.random_background or o.alpha_weight > 0      # (else each alpha is dropped once looked at)
         images, alphas, brightest = [], [], 0.0
         for v in ds.train:
             image, alpha = v.loader.load(v.image_path)      # (one decode for both; View.load_image / load_alpha)
             brightest = max(brightest, float(np.max(image, initial=0.0)))
             images.append(image)
-            alphas.append(alpha)
-        #: whether a training image has transparent pixels (alpha below 1/2: an object on an empty background, whose
-        #: rules densify.empty_background 'auto' turns on)
-        self.transparent = any(a is not None and float(np.min(a, initial=1.0)) < 0.5 for a in alphas)
+            self.transparent = self.transparent or (alpha is not None and float(np.min(alpha, initial=1.0)) < 0.5)
+            if keep_alpha:
+                alphas.append(alpha)
         if brightest <= 1e-6:
             raise ValueError(f"{ds.root}: every training image is black: there is nothing to fit (a scene whose "
                              "lights are missing, hidden or turned off by its -D values?)")
@@ -53,7 +56,7 @@ class TrainingViews:
         # 1 - alpha of each training image: to re-composite it over a random background, and for the alpha loss
         # (only where an image has alpha: on opaque images it would ask for nothing but full coverage)
         self.transparency = None
-        if o.random_background or o.alpha_weight > 0:
+        if keep_alpha:
             alphas = [np.ones((c.height, c.width), np.float32) if a is None else a
                       for a, c in zip(alphas, self.cameras)]
             if o.random_background or any(float(np.min(a, initial=1.0)) < 1.0 for a in alphas):
