@@ -324,17 +324,18 @@ def _note_if_never_refined(trainer, cfg: TrainConfig, log: Callable[[str], None]
 
 
 def _say_empty_background(trainer, cfg: TrainConfig, log: Callable[[str], None]) -> None:
-    """One line when the run fits an object on an empty background with the default strategy (its rules for the
-    floaters of the empty space: optim/densify.py)."""
-    strategy = trainer.strategy
+    """One line when the run fits an object on an empty background with the default strategy: the rules for the
+    floaters of the empty space (optim/densify.py) that fall within its iterations."""
+    strategy, d, n = trainer.strategy, cfg.densify, cfg.optim.iterations
     if not getattr(strategy, "empty_background", False):
         return
-    why = ("the training images have transparent pixels" if cfg.densify.empty_background == "auto"
+    why = ("the training images have transparent pixels" if d.empty_background == "auto"
            else "densify.empty_background=on")
-    prune = (f"the screen-size prune at {strategy.screen_fraction:g} of the image" if strategy.screen_fraction > 0
-             else "no screen-size prune")
-    reset = (f"an opacity reset at iteration {cfg.densify.densify_from_iter:,}"
-             if cfg.densify.opacity_reset_interval > 0 else "no opacity reset (densify.opacity_reset_interval=0)")
+    reset = (f"an opacity reset at iteration {d.densify_from_iter:,}" if strategy.resets_at(d.densify_from_iter)
+             and d.densify_from_iter < n else "no opacity reset at densify.densify_from_iter within the run")
+    prunes = [s for s in range(1, n) if strategy.screen_prunes_at(s)]
+    prune = (f"the screen-size prune at {strategy.screen_fraction:g} of the image at iterations {prunes[0]:,}-"
+             f"{prunes[-1]:,}" if prunes else "no screen-size prune within the run")
     log(f"an object on an empty background ({why}): {reset} and {prune} (densify.empty_background=off: the "
         "reference's rules)")
 

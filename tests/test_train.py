@@ -224,15 +224,25 @@ def test_an_object_on_an_empty_background_gets_its_rules(scene, tmp_path):
     # a new run says so in one line (what it does, and the setting that gives the reference's rules)
     from mi_gaussians.runs import train_run
 
-    lines = []
-    cfg = small_config(20)
-    cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, background=(0.0, 0.0, 0.0), init="cube"),
-                              densify=DensifyConfig())
-    train_run(scene, tmp_path / "said", cfg, progress=False, log=lines.append)
-    assert [ln for ln in lines if "empty background" in ln] == [
+    def said(densify, name):
+        lines = []
+        cfg = small_config(40)
+        cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, background=(0.0, 0.0, 0.0), init="cube"),
+                                  densify=densify)
+        train_run(scene, tmp_path / name, cfg, progress=False, log=lines.append)
+        return [ln for ln in lines if "empty background" in ln]
+
+    short = DensifyConfig(densify_from_iter=5, densification_interval=5, densify_until_iter=35, prune_large_after=15,
+                          screen_prune_span=10)
+    assert said(short, "said") == [
         "an object on an empty background (the training images have transparent pixels): an opacity reset at "
-        "iteration 500 and the screen-size prune at 0.1 of the image (densify.empty_background=off: the reference's "
-        "rules)"]
+        "iteration 5 and the screen-size prune at 0.1 of the image at iterations 20-25 (densify.empty_background=off: "
+        "the reference's rules)"]
+    # (what does not fall within the run is not promised: the defaults' reset at 500 and prunes after 3000)
+    assert said(DensifyConfig(), "said_default") == [
+        "an object on an empty background (the training images have transparent pixels): no opacity reset at "
+        "densify.densify_from_iter within the run and no screen-size prune within the run "
+        "(densify.empty_background=off: the reference's rules)"]
 
 
 def test_random_background_recomposites_rgba_targets(scene, tmp_path):

@@ -254,7 +254,7 @@ class DefaultStrategy(Strategy):
         if self._densifies_at(step):
             info.cloned, info.split, info.pruned = self._densify_and_prune(params, state, step)
             info.densified = info.changed = True
-        if self._resets_at(step):
+        if self.resets_at(step):
             info.reset = self._reset_opacity(params, state)
             info.opacity_reset = info.changed = True
         if info.changed:
@@ -275,17 +275,24 @@ class DefaultStrategy(Strategy):
         cfg = self.cfg
         return cfg.densify_from_iter < step < cfg.densify_until_iter and step % cfg.densification_interval == 0
 
-    def _resets_at(self, step: int) -> bool:
+    def resets_at(self, step: int) -> bool:
+        """Whether iteration ``step`` resets the opacities."""
         cfg = self.cfg
         every = cfg.opacity_reset_interval
         return every > 0 and step < cfg.densify_until_iter and (
             step % every == 0 or ((self.white_background or self.empty_background) and step == cfg.densify_from_iter))
 
+    def screen_prunes_at(self, step: int) -> bool:
+        """Whether the densification of iteration ``step`` applies the screen-size test (``screen_fraction``)."""
+        cfg, span = self.cfg, self.cfg.screen_prune_span
+        return (self.screen_fraction > 0 and self._densifies_at(step) and step > cfg.prune_large_after
+                and (span <= 0 or step <= cfg.prune_large_after + span))
+
     def _weight_prunes_at(self, step: int) -> bool:
         return self.cfg.weight_prune > 0 and step == self.cfg.densify_until_iter
 
     def refines_at(self, step: int) -> bool:
-        return self._densifies_at(step) or self._resets_at(step) or self._weight_prunes_at(step)
+        return self._densifies_at(step) or self.resets_at(step) or self._weight_prunes_at(step)
 
     def updates_state_at(self, step: int) -> bool:
         return step < self.cfg.densify_until_iter
@@ -353,8 +360,7 @@ class DefaultStrategy(Strategy):
         prune = sigmoid(dr.detach(params["opacities"].array)) < float(cfg.min_opacity)
         if step > cfg.prune_large_after:
             prune = prune | (_max3(dr.exp(_rows3(params["scales"]))) > float(cfg.max_world_scale) * self.extent)
-            span = cfg.screen_prune_span
-            if self.screen_fraction > 0 and (span <= 0 or step <= cfg.prune_large_after + span):
+            if self.screen_prunes_at(step):
                 # (off by default but on an empty background: dead code in the reference, see the top)
                 prune = prune | (max_screen > self.screen_fraction)
         is_split = concat([split_mask, dr.zeros(mi.Bool, n_all - n)])
