@@ -71,14 +71,26 @@ def on_stop_signals(handler):
     # pycolmap (its glog) puts a handler of its own on SIGTERM when it is first imported: one that prints a stack
     # trace and kills the process. Imported later (a COLMAP model, undistortion, triangulation), it would replace ours
     # underneath Python, and a SIGTERM during training would lose the iterations since the last checkpoint. (Ray's
-    # core does the same when it starts: a driver of Ray enters this after connecting.)
-    import pycolmap  # noqa: F401
-
+    # core does the same when it starts: a driver of Ray enters this after connecting.) The signals are blocked
+    # from before that import until ours are in place: glog's handler is not async-signal-safe (a SIGTERM that
+    # reached it while the import was allocating deadlocked in malloc, and the process never ended); one that
+    # arrives meanwhile waits, and reaches our handler as they are unblocked.
     signums = [getattr(signal, name) for name in STOP_SIGNALS if hasattr(signal, name)]
-    before = {s: signal.signal(s, handler) for s in signums}
+    masking = hasattr(signal, "pthread_sigmask")
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, signums) if masking else None
+    before = {}
     try:
+        import pycolmap  # noqa: F401
+
+        for s in signums:
+            before[s] = signal.signal(s, handler)
+        if masking:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+            masking = False
         yield
     finally:
+        if masking:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         for s, h in before.items():
             signal.signal(s, h)
 
