@@ -1,5 +1,5 @@
 """Generic Dr.Jit helpers that every layer needs: NumPy <-> Dr.Jit copies, float min/max/clamp, the logistic
-function and quaternion rotation matrices.
+function, quaternion rotation matrices and the rows of a table of vectors (:func:`row_vectors`).
 
 Float min/max/clamp are written with ``dr.select``: ``dr.minimum/maximum/clip`` on floats abort the process when
 Dr.Jit JIT-compiles with libLLVM 15 (see ``drjit-notes.md``). The package selects a newer libLLVM at start-up, but a
@@ -77,6 +77,37 @@ def fmax(a, b):
 def fclamp(x, lo, hi):
     """``x`` clamped to ``[lo, hi]`` with :func:`fmax` then :func:`fmin`."""
     return fmin(fmax(x, lo), hi)
+
+
+def row_vectors(kind, flat, per_row: int = 1, count: int | None = None) -> list:
+    """The first ``count`` (default: all) of the ``per_row`` vectors of type ``kind`` (``mi.Vector3f``,
+    ``mi.Point3f``, ``mi.Float``, ...) in each row of the flat row-major table ``flat`` (e.g. an (N, K, 3) tensor's
+    ``.array``, read as N rows of K ``mi.Vector3f``): a list of ``count`` arrays of N lanes; differentiable.
+
+    The values and gradients of ``dr.gather(kind, flat, arange(N) * per_row + j)``; its reverse mode writes the
+    gradient with plain scatters (``ReduceMode.Permute``: every element is read at most once), where the reverse of
+    a gather is a scatter-add that costs a loop over a SIMD packet's lanes per component on the LLVM backend (even
+    with ``ReduceMode.NoConflicts``): with it the per-Gaussian backward was the step's most expensive kernel after
+    the blend. The gathers read ``flat + 0``: the same variable (no copy), but a node of its own in the AD graph,
+    whose gradient only these gathers write and which then adds to ``flat``'s like any other."""
+    size = dr.size_v(kind) if dr.size_v(kind) > 0 else 1
+    count = per_row if count is None else count
+    n = dr.width(flat)
+    if per_row <= 0 or n % (per_row * size) or not 0 <= count <= per_row:
+        raise ValueError(f"row_vectors(): {n} elements are not rows of {per_row} vectors of {size} "
+                         f"(reading {count} of them)")
+    if count == 0:
+        return []
+    source = flat + 0.0
+    base = dr.arange(dr.uint32_array_t(type(flat)), n // (per_row * size)) * (per_row * size)
+    flat_type = type(flat)
+
+    def component(i):           # (one Float each: Dr.Jit's packet scatters of 4 refuse Permute)
+        return dr.gather(flat_type, source, base + i, mode=dr.ReduceMode.Permute)
+
+    if size == 1 and dr.depth_v(kind) <= 1:
+        return [component(j) for j in range(count)]
+    return [kind(*[component(j * size + c) for c in range(size)]) for j in range(count)]
 
 
 def sigmoid(x):

@@ -63,3 +63,50 @@ def test_exact_float_math_computes_a_times_zero():
     with dr.scoped_set_flag(dr.JitFlag.FastMath, True):
         assert np.all(np.array(a * 0.0) == 0.0)            # (what the flag does: why the scope exists)
     assert dr.flag(dr.JitFlag.FastMath)                     # (the scope restored it)
+
+
+@pytest.mark.parametrize("kind_name, size, per_row, count", [("Float", 1, 2, 2), ("Vector3f", 3, 15, 8),
+                                                             ("Vector4f", 4, 1, 1), ("Point3f", 3, 1, 1)])
+def test_row_vectors_equal_gathers_in_values_and_both_derivatives(kind_name, size, per_row, count):
+    """``row_vectors`` (plain scatters in reverse mode) gives the values and gradients of ``dr.gather`` (a
+    scatter-add), also when the table's gradient has another contribution besides the gathers (which a plain
+    scatter into the table's own gradient would overwrite), and leaves the elements it does not read at 0."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from mi_gaussians.drjit_utils import row_vectors
+
+    kind = getattr(mi, kind_name)
+    rows = 37
+    values = np.random.default_rng(3).normal(size=rows * per_row * size).astype(np.float32)
+
+    def run(read):
+        flat = mi.Float(values)
+        dr.enable_grad(flat)
+        vectors = read(flat)
+        loss = dr.sum(flat * flat) * 0.5                   # (another contribution to the table's gradient)
+        for j, v in enumerate(vectors):
+            for c in range(size):
+                comp = v if size == 1 else v[c]
+                loss += dr.sum(dr.sin(comp) * (j + 1) + comp * comp * (c + 2))
+        dr.backward(loss)
+        tangent = mi.Float(np.linspace(-1, 1, len(values)).astype(np.float32))
+        flat2 = mi.Float(values)
+        dr.enable_grad(flat2)
+        dr.set_grad(flat2, tangent)
+        outs = read(flat2)
+        dr.forward_to(*outs)
+        fwd = [np.array(dr.grad(o)) for o in outs]
+        return [np.array(v) for v in vectors], np.array(dr.grad(flat)), fwd
+
+    def gathered(flat):
+        base = dr.arange(mi.UInt32, rows) * per_row
+        return [dr.gather(kind, flat, base + j) for j in range(count)]
+
+    ours, theirs = run(lambda flat: row_vectors(kind, flat, per_row, count)), run(gathered)
+    for a, b in zip(ours[0] + [ours[1]] + ours[2], theirs[0] + [theirs[1]] + theirs[2]):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6)
+    unread = ours[1].reshape(rows, per_row, size)[:, count:]
+    np.testing.assert_allclose(unread, values.reshape(rows, per_row, size)[:, count:], rtol=1e-6)  # (the extra
+    with pytest.raises(ValueError, match="7 elements are not rows of 4 vectors of 3"):        # term's only)
+        row_vectors(mi.Vector3f, mi.Float([1.0] * 7), 4)

@@ -26,6 +26,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..conventions import SH_C0, sh_coeff_count
+from ..drjit_utils import row_vectors
 
 SH_C1 = 0.4886025119029199
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
@@ -98,11 +99,11 @@ def gather_sh_coeffs(sh_dc: "mi.TensorXf", sh_rest: "mi.TensorXf", degree: int, 
     n = int(sh_dc.shape[0])
     k_rest = int(sh_rest.shape[1]) if len(sh_rest.shape) == 3 else 0
     degree = _check_degree(degree, k_rest)
-    # With the default (all Gaussians once each) no index repeats: NoConflicts makes the reverse-mode
-    # scatter-adds non-atomic.
-    mode = dr.ReduceMode.NoConflicts if index is None else dr.ReduceMode.Auto
     if index is None:
-        index = dr.arange(mi.UInt32, n)
+        # All Gaussians once each: the reverse mode writes the gradients with plain scatters (row_vectors)
+        rest = row_vectors(mi.Vector3f, sh_rest.array, k_rest, sh_coeff_count(degree) - 1) if k_rest else []
+        return row_vectors(mi.Vector3f, sh_dc.array)[0], rest
+    mode = dr.ReduceMode.Auto
     dc = dr.gather(mi.Vector3f, sh_dc.array, index, mode=mode)
     rest = [dr.gather(mi.Vector3f, sh_rest.array, index * k_rest + j, mode=mode)
             for j in range(sh_coeff_count(degree) - 1)]

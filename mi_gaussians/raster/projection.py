@@ -34,7 +34,7 @@ import numpy as np
 
 from ..config import RasterConfig
 from ..data.camera import Camera
-from ..drjit_utils import fclamp, fmax, quaternion_to_matrix, sigmoid
+from ..drjit_utils import fclamp, fmax, quaternion_to_matrix, row_vectors, sigmoid
 from ..model.gaussians import Gaussians
 from ..model.sh import eval_sh_colors, gather_sh_coeffs
 from .blend import TILE
@@ -103,13 +103,11 @@ class GaussianArrays:
 
     @classmethod
     def from_gaussians(cls, g: Gaussians, sh_degree: int) -> "GaussianArrays":
-        # Every index is read once: NoConflicts makes the reverse-mode scatter-adds non-atomic.
+        # Every element is read once: the reverse mode writes the gradients with plain scatters (row_vectors)
         dc, rest = gather_sh_coeffs(g.sh_dc, g.sh_rest, sh_degree)
-        idx = dr.arange(mi.UInt32, g.n)
-        perm = dr.ReduceMode.NoConflicts
-        return cls(means=dr.gather(mi.Point3f, g.means.array, idx, mode=perm),
-                   sigmas=dr.exp(dr.gather(mi.Vector3f, g.scales.array, idx, mode=perm)),
-                   quats=dr.gather(mi.Vector4f, g.rotations.array, idx, mode=perm),
+        return cls(means=row_vectors(mi.Point3f, g.means.array)[0],
+                   sigmas=dr.exp(row_vectors(mi.Vector3f, g.scales.array)[0]),
+                   quats=row_vectors(mi.Vector4f, g.rotations.array)[0],
                    opacity=sigmoid(g.opacities.array),
                    sh_dc=dc, sh_rest=rest, sh_degree=sh_degree)
 
