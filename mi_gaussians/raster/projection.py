@@ -26,6 +26,7 @@ prune compares it with the image size.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import drjit as dr
@@ -184,5 +185,10 @@ def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig, tile_rows: 
         lam = mid + dr.sqrt(fmax(mid * mid - dt, 0.1))
         radii = dr.select(valid, mi.Int32(dr.ceil(3.0 * dr.sqrt(lam))), 0)
 
+    # One kernel for every output: evaluated where each is first needed (the depth sort, the tile counts, the
+    # rectangles, the ellipse test, the blend's packed features), each would re-run the projection from the gathers
+    footprint = [getattr(ellipse, f.name) for f in dataclasses.fields(ellipse) if f.name != "tile_rows"] \
+        if ellipse is not None else []
+    dr.eval(mean2d, conic, opacity, color, tz, rect, count, radii, footprint)
     return Projected(mean2d=mean2d, conic=conic, opacity=opacity, color=color, depth=tz,
                      rect=rect, tile_count=count, radii=radii, ellipse=ellipse)
