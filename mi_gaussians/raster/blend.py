@@ -36,8 +36,8 @@ from ..drjit_utils import fmin
 from .binning import Bins
 
 TILE = 16
-GEO = 8      # packed geometry per Gaussian and per instance: mx, my, log2(e) (-a/2, -b, -c/2) of the conic (a, b, c), opacity,
-             # depth, (pad); see _pack_geometry
+GEO = 8      # packed geometry per Gaussian and per instance: mx, my, log2(e) (-a/2, -b, -c/2) of the conic
+             # (a, b, c), opacity, depth, (pad); see _pack_geometry
 COL = 4      # packed colour per Gaussian and per instance: r, g, b, (pad)
 
 
@@ -156,7 +156,8 @@ def _per_instance(packed: "mi.Float", stride: int, inst: "mi.UInt32") -> "mi.Flo
     """The records of ``packed`` (``stride`` floats per Gaussian, :func:`_pack`) of Gaussians ``inst``, one per
     instance in the order of the tiles' lists: the blend's walk of a tile's list then reads consecutive records, not
     the Gaussians' scattered ones through the list (measured on the CPU, trained models at 200x200 and 400x400:
-    render + backward 0.86-0.87x). One packet gather and one packet scatter per instance."""
+    render + backward 0.7-0.8x; docs/benchmarks/work_per_step.md). One packet gather and one packet scatter per
+    instance."""
     ArrayXf = _array_types()[0]
     m = dr.width(inst)
     buf = dr.zeros(mi.Float, m * stride)
@@ -201,9 +202,9 @@ def _lane_pixels(frame: Frame, n_lanes: int):
 
 
 def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cfg: RasterConfig):
-    """``geo``, ``col``: the features packed per instance (:func:`_pack_instances`). Returns ([r, g, b, depth-sum, T] images (H*W each), lane-order T (lanes * pixels per lane), lane-order last
-    index (the same),
-    number of (pixel x Gaussian) evaluations (lazy UInt32))."""
+    """``geo``, ``col``: the features packed per instance (:func:`_pack_instances`). Returns ([r, g, b, depth-sum,
+    T] images (H*W each), lane-order T (lanes * pixels per lane), lane-order last index (the same), number of
+    (pixel x Gaussian) evaluations (lazy UInt32))."""
     P = frame.layout.pixels
     n_lanes = bins.n_tiles * frame.layout.lanes_per_tile
     lane, tile, px, pys, valid, pix = _lane_pixels(frame, n_lanes)
