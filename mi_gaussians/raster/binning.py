@@ -190,12 +190,16 @@ def bin_gaussians(depth: "mi.Float", rect: tuple, tile_count: "mi.UInt32", tiles
         tile = dr.select(valid, tile, n_tiles)       # the sentinel bucket, after every tile
         buckets = n_tiles + 1
 
+    # (one kernel for both: the sort, the gather through its permutation and the histogram below would each run
+    # the expansion and the ellipse test again)
+    dr.eval(tile, gidx)
+
     # 3. stable bucket sort by tile id keeps the depth order within each tile
     perm = stable_bucket_perm(tile, _next_pow2(buckets))
     gaussian = dr.gather(mi.UInt32, gidx, perm)
 
     hist = dr.zeros(mi.UInt32, n_tiles + 1)
-    dr.scatter_add(hist, mi.UInt32(1), tile + 1, active=valid)
+    dr.scatter_add(hist, mi.UInt32(1), tile + 1, active=tile < n_tiles)     # (the sentinel bucket: not valid)
     tile_start = dr.cumsum(hist)                     # inclusive scan of the shifted histogram = [0, starts..., total]
     dr.eval(gaussian, tile_start)
     return Bins(gaussian=gaussian, tile_start=tile_start, n_instances=total, tiles_x=tiles_x, tiles_y=tiles_y,
