@@ -96,15 +96,12 @@ def gather_sh_coeffs(sh_dc: "mi.TensorXf", sh_rest: "mi.TensorXf", degree: int, 
     sh_dc (N, 3) and sh_rest (N, K - 1, 3) tensors (coefficient-major, as in ``Gaussians``); ``index`` (mi.UInt32,
     default all N) selects the Gaussians. Only the coefficients of the active ``degree`` are gathered. Returns
     ``(dc, rest)``: a mi.Vector3f and a list of (degree + 1)^2 - 1 mi.Vector3f. Differentiable w.r.t. the tensors."""
-    n = int(sh_dc.shape[0])
     k_rest = int(sh_rest.shape[1]) if len(sh_rest.shape) == 3 else 0
     degree = _check_degree(degree, k_rest)
     if index is None:
         # All Gaussians once each: the reverse mode writes the gradients with plain scatters (row_vectors)
         rest = row_vectors(mi.Vector3f, sh_rest.array, k_rest, sh_coeff_count(degree) - 1) if k_rest else []
         return row_vectors(mi.Vector3f, sh_dc.array)[0], rest
-    mode = dr.ReduceMode.Auto
-    dc = dr.gather(mi.Vector3f, sh_dc.array, index, mode=mode)
-    rest = [dr.gather(mi.Vector3f, sh_rest.array, index * k_rest + j, mode=mode)
-            for j in range(sh_coeff_count(degree) - 1)]
+    dc = dr.gather(mi.Vector3f, sh_dc.array, index)
+    rest = [dr.gather(mi.Vector3f, sh_rest.array, index * k_rest + j) for j in range(sh_coeff_count(degree) - 1)]
     return dc, rest
