@@ -442,7 +442,7 @@ RULES: dict[str, "Range | tuple[str, ...]"] = {
     "densify.split_scale_divisor": _POSITIVE, "densify.min_opacity": Range(0, 1, open_high=True),
     "densify.reset_opacity": _OPEN_FRACTION, "densify.weight_prune": Range(0, 1),
     "densify.empty_background": EMPTY_BACKGROUNDS, "densify.empty_screen_fraction": Range(0, 1),
-    "raster.footprint": FOOTPRINTS, "raster.near_plane": _POSITIVE, "raster.guard_band": _POSITIVE, "raster.alpha_min": Range(0, 1, open_high=True),
+    "raster.footprint": FOOTPRINTS, "raster.near_plane": _POSITIVE, "raster.guard_band": _POSITIVE, "raster.alpha_min": _OPEN_FRACTION,
     "raster.alpha_max": Range(0, 1, open_low=True), "raster.transmittance_min": Range(0, 1, open_high=True),
     "mcmc.cap_max": _COUNT, "mcmc.refine_every": _COUNT, "mcmc.min_opacity": Range(0, 1, open_high=True),
     "mcmc.init_opacity": _OPEN_FRACTION, "mcmc.init_scale": _POSITIVE,

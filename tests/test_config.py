@@ -52,6 +52,7 @@ def test_settings_are_parsed_as_their_field_types():
     ("optim.iterations=0", "must be >= 1, got 0"),
     ("checkpoint_every=0", "must be >= 1"),
     ("mcmc.init_opacity=1", "must be > 0 and < 1"),
+    ("raster.alpha_min=0", "must be > 0 and < 1, got 0"),      # the footprint is the ellipse of alpha >= alpha_min
     ("optim.sh_degree=4", "must be >= 0 and <= 3"),
     ("strategy=sgd", "'sgd' is not one of default, mcmc"),
     ("data.init=sphere", "'sphere' is not one of auto, points, triangulate, cube, frustum"),

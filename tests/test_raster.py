@@ -385,3 +385,41 @@ def test_lane_layout_rejects_what_the_kernels_cannot_map():
     with pytest.raises(ValueError, match="pixels = 8"):
         LaneLayout(pixels=8, start_lanes=16, tile_rows=4)    # a lane's pixels lie in one tile column
     assert LaneLayout(pixels=4, start_lanes=16, tile_rows=4).tiles(53, 37) == (4, 10)
+
+
+def _weighted_gradients(params, cam, weights, cfg):
+    from mi_gaussians.raster.rasterize import render
+
+    g = mig.Gaussians.from_numpy(**params)
+    for k in NAMES:
+        dr.enable_grad(getattr(g, k))
+    out = render(g, cam, background=BACKGROUND, cfg=cfg)
+    dr.backward(weighted_loss(out, weights))
+    return {k: np.array(dr.grad(getattr(g, k)), dtype=np.float64) for k in NAMES}
+
+
+@pytest.mark.parametrize("footprint", ["box", "ellipse"])
+@pytest.mark.parametrize("alpha_min", [1.0 / 255.0, 1e-6, 0.2])
+def test_the_backward_packet_skip_changes_no_gradient(monkeypatch, footprint, alpha_min):
+    """The backward blend skips an instance's arithmetic in a SIMD packet where no pixel's exponent reaches
+    log2(alpha_min / opacity) less ``SKIP_MARGIN``: the gradients are those of the loop that never skips, at every
+    alpha_min, with fully transparent Gaussians and with the box footprint (many binned
+    tiles no pixel of which is reached). A bound that skips reachable pixels (a negative margin) changes them."""
+    from mi_gaussians.config import RasterConfig
+
+    params, cam = sf.random_scene(seed=41, n=120, sh_degree=1, width=61, height=43)
+    params["opacities"][::7] = -1e4        # opacity 0 in float32
+    params["opacities"][3::7] = -4.0       # alpha near 1/255 at the centre: the bound's edge
+    weights = random_weights(cam, seed=5)
+    cfg = RasterConfig(footprint=footprint, alpha_min=alpha_min)
+    skipping = _weighted_gradients(params, cam, weights, cfg)
+    monkeypatch.setattr(blend_module, "SKIP_MARGIN", float("inf"))     # lo = -inf: never skip
+    never = _weighted_gradients(params, cam, weights, cfg)
+    for k in NAMES:
+        scale = max(np.abs(never[k]).max(), 1e-6)
+        np.testing.assert_allclose(skipping[k], never[k], rtol=0, atol=1e-6 * scale, err_msg=k)
+    # skips pixels of alpha up to 8 alpha_min (at alpha_min 1e-6, up to 0.07: those below carry no visible weight)
+    monkeypatch.setattr(blend_module, "SKIP_MARGIN", -3.0 if alpha_min > 1e-3 else -16.0)
+    wrong = _weighted_gradients(params, cam, weights, cfg)
+    assert any(not np.allclose(wrong[k], never[k], rtol=0, atol=1e-4 * max(np.abs(never[k]).max(), 1e-6))
+               for k in NAMES)

@@ -25,6 +25,7 @@ of float sums.
 
 from __future__ import annotations
 
+import math
 import sys
 from dataclasses import dataclass
 
@@ -37,7 +38,7 @@ from .binning import Bins
 
 TILE = 16
 GEO = 8      # packed geometry per Gaussian and per instance: mx, my, log2(e) (-a/2, -b, -c/2) of the conic
-             # (a, b, c), opacity, depth, (pad); see _pack_geometry
+             # (a, b, c), opacity, depth, the skip bound; see _pack_geometry
 COL = 4      # packed colour per Gaussian and per instance: r, g, b, (pad)
 
 
@@ -165,17 +166,24 @@ def _per_instance(packed: "mi.Float", stride: int, inst: "mi.UInt32") -> "mi.Flo
     return buf
 
 
-def _pack_geometry(mean2d, conic, opacity, depth) -> "mi.Float":
-    """[mx, my, qa, qb, qc, opacity, depth, 0] per Gaussian with (qa, qb, qc) = log2(e) (-a/2, -b, -c/2), so that
-    the Gaussian falloff is exp(power) = exp2(qa dx^2 + qb dx dy + qc dy^2)."""
+SKIP_MARGIN = 1e-3   # log2 units (0.07 %): far above exp2's and log2's float error, so that the bound never skips a hit
+
+
+def _pack_geometry(mean2d, conic, opacity, depth, alpha_min: float) -> "mi.Float":
+    """[mx, my, qa, qb, qc, opacity, depth, lo] per Gaussian with (qa, qb, qc) = log2(e) (-a/2, -b, -c/2), so that
+    the Gaussian falloff is exp(power) = exp2(qa dx^2 + qb dx dy + qc dy^2), and ``lo`` = log2(alpha_min / opacity)
+    less :data:`SKIP_MARGIN` (``+inf`` at opacity 0): a pixel whose exponent is below it cannot reach alpha_min. The
+    backward loop skips an instance's arithmetic where no pixel of a SIMD packet reaches it; the exact test still
+    decides every hit."""
+    lo = (math.log2(alpha_min) - SKIP_MARGIN) - dr.log2(opacity)
     return _pack([mean2d.x, mean2d.y, (-0.5 * LOG2E) * conic.x, -LOG2E * conic.y, (-0.5 * LOG2E) * conic.z,
-                  opacity, depth], GEO)
+                  opacity, depth, lo], GEO)
 
 
-def _pack_instances(mean2d, conic, opacity, depth, color, inst) -> tuple:
+def _pack_instances(mean2d, conic, opacity, depth, color, inst, alpha_min: float) -> tuple:
     """The blend's inputs: the geometry and colour records (:func:`_pack_geometry`, [r, g, b, 0]) per instance of
     the list ``inst`` (:func:`_per_instance`), evaluated."""
-    geo = _per_instance(_pack_geometry(mean2d, conic, opacity, depth), GEO, inst)
+    geo = _per_instance(_pack_geometry(mean2d, conic, opacity, depth, alpha_min), GEO, inst)
     col = _per_instance(_pack([color.x, color.y, color.z], COL), COL, inst)
     dr.eval(geo, col)
     return geo, col
@@ -301,65 +309,74 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
 
     def body(i, T, acc):
         i = i - 1
-        g = dr.gather(mi.UInt32, inst, i)
         f = dr.gather(ArrayXf, geo, i, shape=(GEO, n_lanes))
-        mx, my, qa, qb, qc, op, z = f[0], f[1], f[2], f[3], f[4], f[5], f[6]
-        ca, cb, cc = (-2.0 / LOG2E) * qa, (-1.0 / LOG2E) * qb, (-2.0 / LOG2E) * qc   # the conic (a, b, c)
+        mx, my, qa, qb, qc, op, z, lo = f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7]
         dx = mx - px
         ax2 = qa * dx * dx
         bx = qb * dx
-        T, acc = list(T), list(acc)
-        hit, alphas, dys, Gs, unclamped = [], [], [], [], []
-        for k in range(P):
-            dy = my - pys[k]
-            power2 = dr.fma(dy, dr.fma(qc, dy, bx), ax2)   # bit-identical to the forward pass
-            G = dr.exp2(power2)
-            raw = op * G
-            alpha = fmin(raw, alpha_max)
-            h = valid[k] & (i < last[k]) & (alpha >= alpha_min) & (power2 <= 0)
-            hit.append(h)
-            alphas.append(alpha)
-            dys.append(dy)
-            Gs.append(G)
-            unclamped.append(raw < alpha_max)
-        any_hit = _any(hit)
-        c = dr.gather(mi.Vector4f, col, i, active=any_hit)
-        # (separate objects: Dr.Jit's += is in-place)
-        g_mx, g_my, g_a, g_b, g_c, g_o, g_z, g_r, g_g, g_bl, abs_mx, abs_my = (mi.Float(0.0) for _ in range(12))
-        for k in range(P):
-            a = alphas[k]
-            one_m = 1.0 - a
-            Ti = T[k] / one_m                       # transmittance in front of this Gaussian
-            gc = gpix[k]
-            wgt = gc.x * c.x + gc.y * c.y + gc.z * c.z + gc.w * z
-            g_alpha = Ti * wgt - (acc[k] + gT_times_T[k]) / one_m
-            aT = a * Ti
-            h = hit[k]
-            T[k] = dr.select(h, Ti, T[k])
-            acc[k] = dr.select(h, acc[k] + wgt * aT, acc[k])
-            hw = h & unclamped[k]
-            g_pow = dr.select(hw, g_alpha * a, 0.0)   # d alpha / d power = o G = alpha when not clamped
-            dy = dys[k]
-            aT_h = dr.select(h, aT, 0.0)
-            d_mx = g_pow * (ca * dx + cb * dy)
-            d_my = g_pow * (cc * dy + cb * dx)
-            g_mx = g_mx - d_mx
-            g_my = g_my - d_my
-            if absgrad:
-                abs_mx = abs_mx + dr.abs(d_mx)
-                abs_my = abs_my + dr.abs(d_my)
-            g_a = g_a - 0.5 * g_pow * dx * dx
-            g_b = g_b - g_pow * dx * dy
-            g_c = g_c - 0.5 * g_pow * dy * dy
-            g_o = g_o + dr.select(hw, g_alpha * Gs[k], 0.0)
-            g_z = g_z + gc.w * aT_h
-            g_r = g_r + gc.x * aT_h
-            g_g = g_g + gc.y * aT_h
-            g_bl = g_bl + gc.z * aT_h
-        dr.scatter_add(ggeo, ArrayXf(g_mx, g_my, g_a, g_b, g_c, g_o, g_z, abs_mx), g,
-                       active=any_hit, mode=dr.ReduceMode.Expand)
-        dr.scatter_add(gcol, mi.Vector4f(g_r, g_g, g_bl, abs_my), g, active=any_hit, mode=dr.ReduceMode.Expand)
-        return i, tuple(T), tuple(acc)
+        dys = [my - pys[k] for k in range(P)]
+        powers = [dr.fma(dys[k], dr.fma(qc, dys[k], bx), ax2) for k in range(P)]   # bit-identical to the forward
+        may_hit = _any([valid[k] & (i < last[k]) & (powers[k] >= lo) for k in range(P)])
+
+        def backward_instance(T, acc):
+            ca, cb, cc = (-2.0 / LOG2E) * qa, (-1.0 / LOG2E) * qb, (-2.0 / LOG2E) * qc   # the conic (a, b, c)
+            T, acc = list(T), list(acc)
+            hit, alphas, Gs, unclamped = [], [], [], []
+            for k in range(P):
+                power2 = powers[k]
+                G = dr.exp2(power2)
+                raw = op * G
+                alpha = fmin(raw, alpha_max)
+                h = valid[k] & (i < last[k]) & (alpha >= alpha_min) & (power2 <= 0)
+                hit.append(h)
+                alphas.append(alpha)
+                Gs.append(G)
+                unclamped.append(raw < alpha_max)
+            any_hit = _any(hit)
+            g = dr.gather(mi.UInt32, inst, i, active=any_hit)
+            c = dr.gather(mi.Vector4f, col, i, active=any_hit)
+            # (separate objects: Dr.Jit's += is in-place)
+            g_mx, g_my, g_a, g_b, g_c, g_o, g_z, g_r, g_g, g_bl, abs_mx, abs_my = (mi.Float(0.0) for _ in range(12))
+            for k in range(P):
+                a = alphas[k]
+                one_m = 1.0 - a
+                Ti = T[k] / one_m                       # transmittance in front of this Gaussian
+                gc = gpix[k]
+                wgt = gc.x * c.x + gc.y * c.y + gc.z * c.z + gc.w * z
+                g_alpha = Ti * wgt - (acc[k] + gT_times_T[k]) / one_m
+                aT = a * Ti
+                h = hit[k]
+                T[k] = dr.select(h, Ti, T[k])
+                acc[k] = dr.select(h, acc[k] + wgt * aT, acc[k])
+                hw = h & unclamped[k]
+                g_pow = dr.select(hw, g_alpha * a, 0.0)   # d alpha / d power = o G = alpha when not clamped
+                dy = dys[k]
+                aT_h = dr.select(h, aT, 0.0)
+                d_mx = g_pow * (ca * dx + cb * dy)
+                d_my = g_pow * (cc * dy + cb * dx)
+                g_mx = g_mx - d_mx
+                g_my = g_my - d_my
+                if absgrad:
+                    abs_mx = abs_mx + dr.abs(d_mx)
+                    abs_my = abs_my + dr.abs(d_my)
+                g_a = g_a - 0.5 * g_pow * dx * dx
+                g_b = g_b - g_pow * dx * dy
+                g_c = g_c - 0.5 * g_pow * dy * dy
+                g_o = g_o + dr.select(hw, g_alpha * Gs[k], 0.0)
+                g_z = g_z + gc.w * aT_h
+                g_r = g_r + gc.x * aT_h
+                g_g = g_g + gc.y * aT_h
+                g_bl = g_bl + gc.z * aT_h
+            dr.scatter_add(ggeo, ArrayXf(g_mx, g_my, g_a, g_b, g_c, g_o, g_z, abs_mx), g,
+                           active=any_hit, mode=dr.ReduceMode.Expand)
+            dr.scatter_add(gcol, mi.Vector4f(g_r, g_g, g_bl, abs_my), g, active=any_hit,
+                           mode=dr.ReduceMode.Expand)
+            return tuple(T), tuple(acc)
+
+        # a SIMD packet (a tile) where no pixel can reach alpha_min skips the instance's arithmetic
+        T, acc = dr.if_stmt((T, acc), may_hit, backward_instance, lambda *state: state,
+                            label="mi_gaussians.blend_backward.hit")
+        return i, T, acc
 
     state = (mi.UInt32(i0), tuple(mi.Float(Tf[k]) for k in range(P)),
              tuple(dr.zeros(mi.Float, n_lanes) for _ in range(P)))
@@ -374,7 +391,8 @@ class BlendOp(dr.CustomOp):
     def eval(self, mean2d, conic, opacity, color, depth, bins, frame, cfg, stats):
         self.bins, self.frame, self.cfg, self.stats = bins, frame, cfg, stats
         self.n = dr.width(opacity)
-        self.geo, self.col = _pack_instances(mean2d, conic, opacity, depth, color, bins.gaussian)
+        self.geo, self.col = _pack_instances(mean2d, conic, opacity, depth, color, bins.gaussian,
+                                           cfg.alpha_min)
         img, self.T_lane, self.last_lane, stats.forward_evaluations = blend_forward(self.geo, self.col, bins,
                                                                                     frame, cfg)
         return tuple(img)
@@ -425,6 +443,7 @@ def blend(mean2d, conic, opacity, color, depth, bins: Bins, frame: Frame, cfg: R
     stats = BlendStats() if stats is None else stats
     if dr.grad_enabled(mean2d, conic, opacity, color, depth):
         return dr.custom(BlendOp, mean2d, conic, opacity, color, depth, bins, frame, cfg, stats)
-    geo, col = _pack_instances(mean2d, conic, opacity, depth, color, bins.gaussian)
+    geo, col = _pack_instances(mean2d, conic, opacity, depth, color, bins.gaussian,
+                                           cfg.alpha_min)
     img, _, _, stats.forward_evaluations = blend_forward(geo, col, bins, frame, cfg)
     return tuple(img)
