@@ -335,38 +335,43 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
             any_hit = _any(hit)
             g = dr.gather(mi.UInt32, inst, i, active=any_hit)
             c = dr.gather(mi.Vector4f, col, i, active=any_hit)
+            # Per lane, the conic's and the mean's gradients are sums over its pixels of g_pow times 1, dy, dy^2
+            # (dx is the lane's): three running sums, the products with dx and the conic once per instance.
             # (separate objects: Dr.Jit's += is in-place)
-            g_mx, g_my, g_a, g_b, g_c, g_o, g_z, g_r, g_g, g_bl, abs_mx, abs_my = (mi.Float(0.0) for _ in range(12))
+            s0, s_y, s_yy, g_o, g_z, g_r, g_g, g_bl, abs_mx, abs_my = (mi.Float(0.0) for _ in range(10))
             for k in range(P):
                 a = alphas[k]
-                one_m = 1.0 - a
-                Ti = T[k] / one_m                       # transmittance in front of this Gaussian
+                inv = dr.rcp(1.0 - a)
+                Ti = T[k] * inv                         # transmittance in front of this Gaussian
                 gc = gpix[k]
-                wgt = gc.x * c.x + gc.y * c.y + gc.z * c.z + gc.w * z
-                g_alpha = Ti * wgt - (acc[k] + gT_times_T[k]) / one_m
+                wgt = dr.fma(gc.x, c.x, dr.fma(gc.y, c.y, dr.fma(gc.z, c.z, gc.w * z)))
+                g_alpha = Ti * wgt - (acc[k] + gT_times_T[k]) * inv
                 aT = a * Ti
                 h = hit[k]
                 T[k] = dr.select(h, Ti, T[k])
-                acc[k] = dr.select(h, acc[k] + wgt * aT, acc[k])
+                acc[k] = dr.select(h, dr.fma(wgt, aT, acc[k]), acc[k])
                 hw = h & unclamped[k]
                 g_pow = dr.select(hw, g_alpha * a, 0.0)   # d alpha / d power = o G = alpha when not clamped
                 dy = dys[k]
                 aT_h = dr.select(h, aT, 0.0)
-                d_mx = g_pow * (ca * dx + cb * dy)
-                d_my = g_pow * (cc * dy + cb * dx)
-                g_mx = g_mx - d_mx
-                g_my = g_my - d_my
+                s0 = s0 + g_pow
+                gy = g_pow * dy
+                s_y = s_y + gy
+                s_yy = dr.fma(gy, dy, s_yy)
                 if absgrad:
-                    abs_mx = abs_mx + dr.abs(d_mx)
-                    abs_my = abs_my + dr.abs(d_my)
-                g_a = g_a - 0.5 * g_pow * dx * dx
-                g_b = g_b - g_pow * dx * dy
-                g_c = g_c - 0.5 * g_pow * dy * dy
+                    abs_mx = abs_mx + dr.abs(g_pow * (ca * dx + cb * dy))
+                    abs_my = abs_my + dr.abs(g_pow * (cc * dy + cb * dx))
                 g_o = g_o + dr.select(hw, g_alpha * Gs[k], 0.0)
-                g_z = g_z + gc.w * aT_h
-                g_r = g_r + gc.x * aT_h
-                g_g = g_g + gc.y * aT_h
-                g_bl = g_bl + gc.z * aT_h
+                g_z = dr.fma(gc.w, aT_h, g_z)
+                g_r = dr.fma(gc.x, aT_h, g_r)
+                g_g = dr.fma(gc.y, aT_h, g_g)
+                g_bl = dr.fma(gc.z, aT_h, g_bl)
+            dx_s0 = dx * s0
+            g_mx = -(ca * dx_s0 + cb * s_y)
+            g_my = -(cc * s_y + cb * dx_s0)
+            g_a = (-0.5 * dx) * dx_s0
+            g_b = -(dx * s_y)
+            g_c = -0.5 * s_yy
             dr.scatter_add(ggeo, ArrayXf(g_mx, g_my, g_a, g_b, g_c, g_o, g_z, abs_mx), g,
                            active=any_hit, mode=dr.ReduceMode.Expand)
             dr.scatter_add(gcol, mi.Vector4f(g_r, g_g, g_bl, abs_my), g, active=any_hit,
