@@ -34,12 +34,15 @@ def weighted_loss(out, weights: dict):
             + dr.sum(out.depth.array * mi.Float(weights["depth"].astype(np.float32).ravel())))
 
 
-def gradients_numpy(params: dict, cam, weights: dict, background=(0.0, 0.0, 0.0), sh_degree=None, antialiased=False):
-    """Our gradients of the weighted loss w.r.t. every raw parameter, plus the render output."""
+def gradients_numpy(params: dict, cam, weights: dict, background=(0.0, 0.0, 0.0), sh_degree=None, antialiased=False,
+                    cfg: RasterConfig | None = None):
+    """Our gradients of the weighted loss w.r.t. every raw parameter, plus the render output (with ``cfg``, that
+    configuration instead of the default's ``antialiased`` variant)."""
     g = mig.Gaussians.from_numpy(**params)
     for k in NAMES:
         dr.enable_grad(getattr(g, k))
-    out = render(g, cam, background=background, sh_degree=sh_degree, cfg=RasterConfig(antialiased=antialiased))
+    cfg = RasterConfig(antialiased=antialiased) if cfg is None else cfg
+    out = render(g, cam, background=background, sh_degree=sh_degree, cfg=cfg)
     dr.backward(weighted_loss(out, weights))
     grads = {k: (np.array(dr.grad(getattr(g, k)), dtype=np.float64).reshape(params[k].shape) if params[k].size
                  else np.zeros(params[k].shape)) for k in NAMES}

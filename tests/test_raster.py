@@ -387,17 +387,6 @@ def test_lane_layout_rejects_what_the_kernels_cannot_map():
     assert LaneLayout(pixels=4, start_lanes=16, tile_rows=4).tiles(53, 37) == (4, 10)
 
 
-def _weighted_gradients(params, cam, weights, cfg):
-    from mi_gaussians.raster.rasterize import render
-
-    g = mig.Gaussians.from_numpy(**params)
-    for k in NAMES:
-        dr.enable_grad(getattr(g, k))
-    out = render(g, cam, background=BACKGROUND, cfg=cfg)
-    dr.backward(weighted_loss(out, weights))
-    return {k: np.array(dr.grad(getattr(g, k)), dtype=np.float64) for k in NAMES}
-
-
 @pytest.mark.parametrize("footprint", ["box", "ellipse"])
 @pytest.mark.parametrize("alpha_min", [1.0 / 255.0, 1e-6, 0.2])
 def test_the_backward_packet_skip_changes_no_gradient(monkeypatch, footprint, alpha_min):
@@ -412,14 +401,14 @@ def test_the_backward_packet_skip_changes_no_gradient(monkeypatch, footprint, al
     params["opacities"][3::7] = -4.0       # alpha near 1/255 at the centre: the bound's edge
     weights = random_weights(cam, seed=5)
     cfg = RasterConfig(footprint=footprint, alpha_min=alpha_min)
-    skipping = _weighted_gradients(params, cam, weights, cfg)
+    skipping = gradients_numpy(params, cam, weights, background=BACKGROUND, cfg=cfg)[0]
     monkeypatch.setattr(blend_module, "SKIP_MARGIN", float("inf"))     # lo = -inf: never skip
-    never = _weighted_gradients(params, cam, weights, cfg)
+    never = gradients_numpy(params, cam, weights, background=BACKGROUND, cfg=cfg)[0]
     for k in NAMES:
         scale = max(np.abs(never[k]).max(), 1e-6)
         np.testing.assert_allclose(skipping[k], never[k], rtol=0, atol=1e-6 * scale, err_msg=k)
     # skips pixels of alpha up to 8 alpha_min (at alpha_min 1e-6, up to 0.07: those below carry no visible weight)
     monkeypatch.setattr(blend_module, "SKIP_MARGIN", -3.0 if alpha_min > 1e-3 else -16.0)
-    wrong = _weighted_gradients(params, cam, weights, cfg)
+    wrong = gradients_numpy(params, cam, weights, background=BACKGROUND, cfg=cfg)[0]
     assert any(not np.allclose(wrong[k], never[k], rtol=0, atol=1e-4 * max(np.abs(never[k]).max(), 1e-6))
                for k in NAMES)

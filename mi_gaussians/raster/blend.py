@@ -318,7 +318,8 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
         bx = qb * dx
         dys = [my - pys[k] for k in range(P)]
         powers = [dr.fma(dys[k], dr.fma(qc, dys[k], bx), ax2) for k in range(P)]   # bit-identical to the forward
-        may_hit = _any([valid[k] & (i < last[k]) & (powers[k] >= lo) for k in range(P)])
+        live = [valid[k] & (i < last[k]) for k in range(P)]      # pixels this instance can still contribute to
+        may_hit = _any([live[k] & (powers[k] >= lo) for k in range(P)])
 
         def backward_instance(T, acc):
             ca, cb, cc = (-2.0 / LOG2E) * qa, (-1.0 / LOG2E) * qb, (-2.0 / LOG2E) * qc   # the conic (a, b, c)
@@ -329,7 +330,7 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
                 G = dr.exp2(power2)
                 raw = op * G
                 alpha = fmin(raw, alpha_max)
-                h = valid[k] & (i < last[k]) & (alpha >= alpha_min) & (power2 <= 0)
+                h = live[k] & (alpha >= alpha_min) & (power2 <= 0)
                 hit.append(h)
                 alphas.append(alpha)
                 Gs.append(G)
