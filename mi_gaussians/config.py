@@ -219,6 +219,13 @@ class DensifyConfig:
                                              # weight in a training view (the sum over its pixels of T * alpha, as a
                                              # share of the view's pixels: optim/weights.py) is below this; 0: off
                                              # (the reference)
+    error_gate: float = 0.0                  # densify only the candidates whose error score (their blending
+                                             # weight in the high-error pixels of error_views sampled training views,
+                                             # optim/weights.py error_weights) is at least this many times the
+                                             # model's mean score (FastGS's multi-view consistent densification);
+                                             # 0: off (the reference)
+    error_views: int = 10                    # views sampled for error_gate at each densification (FastGS: 10)
+    error_threshold: float = 0.1             # a pixel is high-error above this share of its view's error range
     reset_opacity: float = 0.01              # opacity reset: opacity = min(opacity, reset_opacity)
     reset_once: bool = False                 # a reset goes only over the Gaussians no reset has gone over yet (rows
                                              # created since the previous reset, and the initial points at the
@@ -441,6 +448,7 @@ RULES: dict[str, "Range | tuple[str, ...]"] = {
     "densify.densification_interval": _COUNT, "densify.split_count": _COUNT,
     "densify.split_scale_divisor": _POSITIVE, "densify.min_opacity": Range(0, 1, open_high=True),
     "densify.reset_opacity": _OPEN_FRACTION, "densify.weight_prune": Range(0, 1),
+    "densify.error_gate": Range(0), "densify.error_views": _COUNT, "densify.error_threshold": Range(0, 1, open_high=True),
     "densify.empty_background": EMPTY_BACKGROUNDS, "densify.empty_screen_fraction": Range(0, 1),
     "raster.footprint": FOOTPRINTS, "raster.near_plane": _POSITIVE, "raster.guard_band": _POSITIVE, "raster.alpha_min": _OPEN_FRACTION,
     "raster.alpha_max": Range(0, 1, open_low=True), "raster.transmittance_min": Range(0, 1, open_high=True),

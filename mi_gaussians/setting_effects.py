@@ -68,6 +68,8 @@ RULES = (
                                          and c.densify.densify_until_iter < c.optim.iterations,
                                          "it acts at densify.densify_until_iter in the default strategy, which this "
                                          "run does not reach or use")),
+    Rule("densify.error_[tv]*", _unless(lambda c, _: c.densify.error_gate > 0,      # error_views, error_threshold
+                                        "it tunes densify.error_gate's score, and the gate is 0 (off)")),
     Rule("densify.empty_screen_fraction", _unless(lambda c, _: c.densify.empty_background != "off"
                                                   and c.densify.max_screen_fraction == 0,
                                                   "it is the screen-size prune on an empty background when "

@@ -543,3 +543,31 @@ def test_absgrad_statistic_and_threshold():
             fake.means2d_absgrad = fake.means2d_grad
         info = s.step_post_backward(params, state, 600, fake)
         assert info.cloned == expect, absgrad
+
+
+def test_error_gate_densifies_only_the_candidates_whose_score_reaches_it():
+    """``densify.error_gate``: of the gradient's candidates, only those whose error score (the strategy's
+    ``view_errors``, asked with the model and the iteration) is at least the gate times the mean score are cloned
+    or split; pruning is unchanged; 0 (the reference) never asks for the score."""
+    scores = np.zeros(len(SCENE), np.float32)
+    scores[[1, 7]] = 2e-5                       # the split candidate and the clone candidate that is then pruned
+    # (mean score 5e-6: a gate of 3.5 is 1.75e-5, reached; of 4.5, 2.25e-5, not)
+    asked = []
+
+    def view_errors(g, step):
+        asked.append((g.n, step))
+        return mi.Float(scores)
+
+    for gate, expect in ((3.5, dict(cloned=1, split=1, pruned=3)), (4.5, dict(cloned=0, split=0, pruned=2)),
+                         (0.0, dict(cloned=2, split=1, pruned=3))):
+        params, out = crafted()
+        s = DefaultStrategy(dataclasses.replace(DensifyConfig(), error_gate=gate), EXTENT)
+        s.view_errors = view_errors
+        state = s.initialize_state(params.n)
+        info = s.step_post_backward(params, state, 600, out)
+        assert (info.cloned, info.split, info.pruned) == (expect["cloned"], expect["split"], expect["pruned"]), gate
+    assert asked == [(8, 600), (8, 600)]        # (not with the gate off)
+    params, out = crafted()
+    s = DefaultStrategy(dataclasses.replace(DensifyConfig(), error_gate=1.0), EXTENT)
+    with pytest.raises(ValueError, match="view_errors"):
+        s.step_post_backward(params, s.initialize_state(params.n), 600, out)

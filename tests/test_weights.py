@@ -70,3 +70,105 @@ def test_weight_prune_removes_what_no_view_shows_at_the_end_of_densification():
     np.testing.assert_array_equal(opt.gaussians.numpy()["means"], params["means"][weights >= thr])
     off = make_strategy(TrainConfig(), 1.0, white_background=False)
     assert not off.refines_at(TrainConfig().densify.densify_until_iter)     # (0: the reference, nothing)
+
+
+def _separated_threshold(normalized: np.ndarray, near: float) -> float:
+    """A threshold near ``near`` in the widest gap of the normalized errors (so that float32 and float64 agree on
+    every pixel's side of it)."""
+    v = np.sort(normalized.ravel())
+    lo = np.searchsorted(v, near - 0.15)
+    hi = np.searchsorted(v, near + 0.15)
+    gaps = np.diff(v[lo:hi + 1])
+    k = int(np.argmax(gaps))
+    return float(0.5 * (v[lo + k] + v[lo + k + 1]))
+
+
+def test_error_weights_match_the_reference_renderer_per_gaussian():
+    """``error_weights``: per Gaussian, its blending weight in each view's high-error pixels, as a share of the
+    view's pixels, averaged over the views; against the float64 reference renderer (each Gaussian alone coloured)."""
+    import mitsuba as mi
+
+    from mi_gaussians.optim.weights import error_weights
+
+    params, cam = sf.random_scene(seed=3, n=24, sh_degree=0, width=40, height=32)
+    other, _ = sf.random_scene(seed=8, n=24, sh_degree=0, width=40, height=32)
+    opaque, cam2 = sf.opaque_stack(seed=1, n=8)
+    g = mig.Gaussians.from_numpy(**params)
+    n = g.n
+    alone_images = [render_reference(dict(params, sh_dc=alone(n, k)), cam, sh_degree=0)["rgb"].sum(-1) / 3
+                    for k in range(n)]
+    views, want = [], np.zeros(n)
+    # two views: the same camera against two targets (another scene's render; a uniform grey)
+    img = render_reference(params, cam, sh_degree=0)["rgb"]
+    for target in (render_reference(other, cam, sh_degree=0)["rgb"], np.full_like(img, 0.4)):
+        e = np.abs(img - target).mean(-1)
+        normalized = (e - e.min()) / (e.max() - e.min())
+        thr = _separated_threshold(normalized, 0.3)
+        mask = normalized > thr
+        assert 0.05 < mask.mean() < 0.95                           # (a real mask)
+        want += np.array([(a * mask).sum() for a in alone_images]) / (cam.width * cam.height)
+        views.append((cam, mi.TensorXf(target.astype(np.float32)), thr))
+    want /= 2
+    got = sum(np.array(error_weights(g, [(c, t)], 0, (0.0, 0.0, 0.0), thr)) for c, t, thr in views) / 2
+    assert want.max() * cam.width * cam.height > 1.0               # (more than a pixel's worth: a real test)
+    np.testing.assert_allclose(got, want, rtol=2e-3, atol=2e-3 / (cam.width * cam.height))
+    # the mean over several views in one call
+    same = np.array(error_weights(g, [(c, t) for c, t, _ in views[:1]] * 2, 0, (0.0, 0.0, 0.0), views[0][2]))
+    np.testing.assert_allclose(same, np.array(error_weights(g, [views[0][:2]], 0, (0.0, 0.0, 0.0), views[0][2])),
+                               rtol=1e-6, atol=1e-12)
+    # Gaussians hidden behind opaque ones weigh (almost) nothing, whatever the error behind them
+    go = mig.Gaussians.from_numpy(**opaque)
+    shown = np.array(max_weights(go, [cam2]))
+    err = np.array(error_weights(go, [(cam2, mi.TensorXf(np.full((cam2.height, cam2.width, 3), 0.4, np.float32)))],
+                                 0, (0.0, 0.0, 0.0), 0.0))
+    assert np.all(err <= shown + 1e-7) and err.max() > 0
+
+
+def test_the_error_gate_scores_the_training_views_it_is_given():
+    """``make_strategy`` with ``densify.error_gate`` scores the model on ``densify.error_views`` of the training views
+    (all of them when there are fewer: their mean), the same views for the same iteration; without training views it
+    is refused."""
+    import dataclasses
+
+    import mitsuba as mi
+    import pytest
+
+    from mi_gaussians.config import DensifyConfig, TrainConfig
+    from mi_gaussians.optim.strategies import make_strategy
+    from mi_gaussians.optim.weights import error_weights
+
+    params, cam = sf.random_scene(seed=3, n=24, sh_degree=1, width=40, height=32)
+    other, _ = sf.random_scene(seed=8, n=24, sh_degree=1, width=40, height=32)
+    g = mig.Gaussians.from_numpy(**params)
+    targets = [mi.TensorXf(render_reference(other, cam, sh_degree=1)["rgb"].astype(np.float32)),
+               mi.TensorXf(np.full((cam.height, cam.width, 3), 0.4, np.float32)),
+               mi.TensorXf(np.full((cam.height, cam.width, 3), 0.9, np.float32))]
+
+    class Views:
+        def __len__(self):
+            return len(targets)
+
+        def camera(self, i):
+            return cam
+
+        def target(self, i):
+            return targets[i]
+
+    def strategy(views_drawn):
+        cfg = dataclasses.replace(TrainConfig(), densify=dataclasses.replace(
+            DensifyConfig(), error_gate=1e-4, error_views=views_drawn, error_threshold=0.2))
+        return make_strategy(cfg, 1.0, white_background=False, training_views=Views(), background=(0.2, 0.2, 0.2))
+
+    everything = np.array(strategy(5).view_errors(g, 3000))            # (degree 1 from iteration 1000 on)
+    want = np.array(error_weights(g, [(cam, t) for t in targets], 1, (0.2, 0.2, 0.2), 0.2))
+    np.testing.assert_allclose(everything, want, rtol=1e-5, atol=1e-10)
+    assert np.array(error_weights(g, [(cam, t) for t in targets], 0, (0.2, 0.2, 0.2), 0.2)).tolist() != want.tolist()
+    one = strategy(1)
+    singles = [np.array(error_weights(g, [(cam, t)], 1, (0.2, 0.2, 0.2), 0.2)) for t in targets]
+    drawn = [np.array(one.view_errors(g, step)) for step in range(1100, 1400, 100)]
+    for d in drawn:                                                    # one view each time, one of the three
+        assert any(np.allclose(d, s, rtol=1e-5, atol=1e-10) for s in singles)
+    np.testing.assert_array_equal(np.array(one.view_errors(g, 1200)), drawn[1])
+    with pytest.raises(ValueError, match="training views"):
+        make_strategy(dataclasses.replace(TrainConfig(), densify=dataclasses.replace(DensifyConfig(), error_gate=1e-4)),
+                      1.0, white_background=False)

@@ -64,6 +64,14 @@ Deliberate differences from the reference code (each flagged where it is impleme
 * ``weight_prune`` (off by default; not in the reference): at ``densify_until_iter``, the Gaussians whose largest
   blending weight in a training view (a share of the image: :mod:`.weights`) is below it are removed (the trainer
   supplies ``view_weights``), so that the iterations after densification do not carry them.
+* ``error_gate`` (off by default; FastGS's multi-view consistent densification, Ren et al. 2025): a candidate of
+  the gradient test is cloned or split only when its error score is at least ``error_gate`` times the model's mean
+  score. The score is its blending weight in the high-error pixels of ``error_views`` sampled training views,
+  averaged over them (:func:`.weights.error_weights`; the trainer supplies ``view_errors``). FastGS counts the
+  high-error pixels of a Gaussian's footprint against a fixed number of pixels; we weigh each by the Gaussian's
+  ``T * alpha`` there, so that a Gaussian hidden behind others scores what it shows, and compare with the mean, so
+  that the rule does not depend on the image size (a fixed share of the image, tried first, densified a 400-pixel
+  image's smaller Gaussians far less than a 200-pixel one's: docs/benchmarks/work_per_step.md).
 * ``densify_until_iter`` bounds everything with ``step < densify_until_iter`` exactly as the reference's
   ``if iteration < opt.densify_until_iter`` block (so no opacity reset at step 15000 with the defaults).
 
@@ -160,6 +168,8 @@ class DefaultStrategy(Strategy):
         #: ``gaussians -> mi.Float``: each Gaussian's largest blending weight over the training views
         #: (:func:`mi_gaussians.optim.weights.max_weights` on them); the trainer sets it (``densify.weight_prune``)
         self.view_weights: Callable | None = None
+        #: ``(gaussians, step) -> mi.Float``: each Gaussian's error score (``densify.error_gate``); the trainer sets it
+        self.view_errors: Callable | None = None
 
     @classmethod
     def from_config(cls, cfg, extent: float, white_background: bool,
@@ -336,6 +346,11 @@ class DefaultStrategy(Strategy):
         sigma_max = _max3(dr.exp(_rows3(params["scales"])))
         grads = dr.select(st.denom > 0, st.grad_accum / st.denom, 0.0)
         high = grads >= float(cfg.absgrad_threshold if cfg.absgrad else cfg.grad_threshold)
+        if cfg.error_gate > 0:
+            if self.view_errors is None:
+                raise ValueError("densify.error_gate needs the training views (DefaultStrategy.view_errors)")
+            score = self.view_errors(params.gaussians, step)
+            high = high & (score >= float(cfg.error_gate) * dr.mean(score))
         clone_idx = dr.compress(high & (sigma_max <= dense))
         split_mask = high & (sigma_max > dense)
         split_idx = dr.compress(split_mask)

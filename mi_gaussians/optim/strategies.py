@@ -3,6 +3,9 @@ command line's ``--strategy`` choices come from there); :data:`CLASSES` gives ea
 
 from __future__ import annotations
 
+from typing import Callable
+
+import mitsuba as mi
 import numpy as np
 
 from ..config import EMPTY_BACKGROUNDS, STRATEGIES, TrainConfig
@@ -11,17 +14,20 @@ from ..model.gaussians import Gaussians
 from .densify import DefaultStrategy
 from .mcmc import MCMCStrategy
 from .strategy import Strategy
-from .weights import max_weights
+from .schedules import sh_degree_at
+from .weights import error_weights, max_weights
 
 #: The class of each strategy that ``config.STRATEGIES`` names (tests/test_cli.py checks that both hold the same names).
 CLASSES: dict[str, type[Strategy]] = {"default": DefaultStrategy, "mcmc": MCMCStrategy}
 
 
 def make_strategy(cfg: TrainConfig, extent: float, white_background: bool, train_cameras=(),
-                  empty_background: bool = False) -> Strategy:
+                  empty_background: bool = False, training_views=None, background=(0.0, 0.0, 0.0)) -> Strategy:
     """The densification strategy ``cfg.strategy`` names, built from its section of ``cfg``; ``train_cameras``: the
     training views' cameras, whose blending weights ``densify.weight_prune`` measures (:mod:`.weights`);
-    ``empty_background``: whether the run fits an object on an empty background (:func:`empty_background`)."""
+    ``empty_background``: whether the run fits an object on an empty background (:func:`empty_background`);
+    ``training_views`` (a :class:`~.targets.TrainingViews`) and the ``background`` the run renders on: the views
+    ``densify.error_gate`` scores the model on (:func:`error_scorer`)."""
     if cfg.strategy not in CLASSES:
         raise ValueError(f"unknown densification strategy {cfg.strategy!r} (expected one of {', '.join(STRATEGIES)})")
     strategy = CLASSES[cfg.strategy].from_config(cfg, extent, white_background, empty_background)
@@ -30,7 +36,28 @@ def make_strategy(cfg: TrainConfig, extent: float, white_background: bool, train
         if not cameras:
             raise ValueError("densify.weight_prune needs the training cameras")
         strategy.view_weights = lambda g: max_weights(g, cameras, cfg.raster)
+    if isinstance(strategy, DefaultStrategy) and cfg.densify.error_gate > 0:
+        if training_views is None or not len(training_views):
+            raise ValueError("densify.error_gate needs the training views")
+        strategy.view_errors = error_scorer(cfg, training_views, background)
     return strategy
+
+
+def error_scorer(cfg: TrainConfig, views, background) -> Callable:
+    """``(gaussians, step) -> mi.Float``: ``densify.error_gate``'s score (:func:`.weights.error_weights`) on
+    ``densify.error_views`` of the training ``views`` (a :class:`~.targets.TrainingViews`), drawn without
+    replacement from a stream keyed by the run's seed and the iteration (a resumed run draws the same), rendered at
+    the iteration's SH degree on ``background`` (with the views' given poses and without a colour compensation: the
+    score looks for what the model has not fitted, and those corrections are small next to it)."""
+    d, o = cfg.densify, cfg.optim
+
+    def score(g: Gaussians, step: int) -> "mi.Float":
+        n = len(views)
+        picks = np.random.default_rng([cfg.seed, 7, step]).choice(n, size=min(n, d.error_views), replace=False)
+        chosen = [(views.camera(int(i)), views.target(int(i))) for i in picks]
+        degree = min(g.sh_degree, sh_degree_at(step, o.sh_degree, o.sh_increase_interval))
+        return error_weights(g, chosen, degree, background, d.error_threshold, cfg.raster)
+    return score
 
 
 def empty_background(setting: str, transparent: bool) -> bool:

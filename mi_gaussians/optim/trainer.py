@@ -78,7 +78,8 @@ class Trainer:
         self.empty_background = empty_background(cfg.densify.empty_background, self.views.transparent)
         self.strategy = make_strategy(cfg, self.extent, white_background=self.background == (1.0, 1.0, 1.0),
                                       train_cameras=[v.camera for v in ds.train],
-                                      empty_background=self.empty_background)
+                                      empty_background=self.empty_background, training_views=self.views,
+                                      background=self.background)
         self.params = GaussianAdam(initial_gaussians(ds, cfg.optim.sh_degree, self.strategy, seed=cfg.seed + 3),
                                    cfg.optim, self.extent)
         self.strategy_state = self.strategy.initialize_state(self.params.n)

@@ -10,6 +10,9 @@ the image size (a rule in pixels would: the same Gaussian covers four times the 
 (:class:`~mi_gaussians.optim.densify.DefaultStrategy`). Measured offline on trained models
 (``benchmarks/prune_scores.py``, docs/benchmarks/work_per_step.md): 10-14 % of the Gaussians of the shared objects'
 models are seen by no training view, and their removal changes no test score.
+
+:func:`error_weights` weighs the same quantity by a mask of each view's high-error pixels: FastGS's densification
+score (``densify.error_gate``), which densifies only where several views agree that the image is not yet fitted.
 """
 
 from __future__ import annotations
@@ -30,23 +33,57 @@ from ..raster.rasterize import render
 def max_weights(g: Gaussians, cameras: Sequence, cfg: RasterConfig = RasterConfig()) -> "mi.Float":
     """Per Gaussian of ``g``, its largest blending weight over ``cameras``, each divided by its camera's pixel count
     (a share of the image: N values in [0, 1])."""
-    n = g.n
-    best = dr.zeros(mi.Float, n)
-    if n == 0:
+    best = dr.zeros(mi.Float, g.n)
+    if g.n == 0:
         return best
-    white = dr.full(mi.Float, 0.5 / SH_C0, 3 * n)
-    no_rest = owned_tensor(np.zeros((n, 0, 3), np.float32))
-    idx = dr.arange(mi.UInt32, n) * 3
     for camera in cameras:
-        dc = mi.TensorXf(mi.Float(white), (n, 3))
-        dr.enable_grad(dc)
-        probe = Gaussians(means=dr.detach(g.means), scales=dr.detach(g.scales), rotations=dr.detach(g.rotations),
-                          opacities=dr.detach(g.opacities), sh_dc=dc, sh_rest=no_rest)
-        out = render(probe, camera, background=(0.0, 0.0, 0.0), sh_degree=0, cfg=cfg)
-        dr.backward(dr.sum(out.rgb.array))
-        grad = dr.grad(dc).array
-        w = (dr.gather(mi.Float, grad, idx) + dr.gather(mi.Float, grad, idx + 1)
-             + dr.gather(mi.Float, grad, idx + 2)) * (1.0 / (3.0 * SH_C0 * camera.width * camera.height))
-        best = dr.maximum(best, w)
+        best = dr.maximum(best, _probe_weights(g, camera, None, cfg) * (1.0 / (camera.width * camera.height)))
         dr.eval(best)
     return best
+
+
+def _probe_weights(g: Gaussians, camera, pixel_weight, cfg: RasterConfig) -> "mi.Float":
+    """Per Gaussian, the sum over ``camera``'s pixels of ``pixel_weight * T * alpha`` (``pixel_weight``: (H, W) values,
+    or None for 1), through the renderer's backward pass on a probe model whose every colour is 1."""
+    n = g.n
+    white = dr.full(mi.Float, 0.5 / SH_C0, 3 * n)
+    no_rest = owned_tensor(np.zeros((n, 0, 3), np.float32))
+    dc = mi.TensorXf(white, (n, 3))
+    dr.enable_grad(dc)
+    probe = Gaussians(means=dr.detach(g.means), scales=dr.detach(g.scales), rotations=dr.detach(g.rotations),
+                      opacities=dr.detach(g.opacities), sh_dc=dc, sh_rest=no_rest)
+    out = render(probe, camera, background=(0.0, 0.0, 0.0), sh_degree=0, cfg=cfg)
+    rgb = out.rgb.array
+    if pixel_weight is not None:
+        rgb = rgb * dr.repeat(pixel_weight, 3)
+    dr.backward(dr.sum(rgb))
+    grad = dr.grad(dc).array
+    idx = dr.arange(mi.UInt32, n) * 3
+    return (dr.gather(mi.Float, grad, idx) + dr.gather(mi.Float, grad, idx + 1)
+            + dr.gather(mi.Float, grad, idx + 2)) * (1.0 / (3.0 * SH_C0))
+
+
+def error_weights(g: Gaussians, views: Sequence, sh_degree: int, background, threshold: float,
+                  cfg: RasterConfig = RasterConfig()) -> "mi.Float":
+    """Per Gaussian of ``g``, its mean over ``views`` ((camera, target (H, W, 3)) pairs) of its blending weight in
+    the view's high-error pixels, as a share of the view's pixels: a pixel is high-error where its L1 error (the mean
+    over the channels), rescaled to [0, 1] between the view's smallest and largest, exceeds ``threshold`` (FastGS's
+    multi-view consistent densification score, with each pixel weighted by the Gaussian's ``T * alpha`` there
+    instead of counted)."""
+    n = g.n
+    total = dr.zeros(mi.Float, n)
+    if n == 0 or not views:
+        return total
+    for camera, target in views:
+        with dr.suspend_grad():
+            out = render(g, camera, background=background, sh_degree=sh_degree, cfg=cfg)
+            err = dr.abs(out.rgb.array - target.array)
+            npix = camera.width * camera.height
+            i = dr.arange(mi.UInt32, npix) * 3
+            e = (dr.gather(mi.Float, err, i) + dr.gather(mi.Float, err, i + 1) + dr.gather(mi.Float, err, i + 2))
+            lo, hi = dr.min(e), dr.max(e)
+            mask = dr.select((e - lo) > threshold * (hi - lo), 1.0, 0.0)
+            dr.eval(mask)
+        total += _probe_weights(g, camera, mask, cfg) * (1.0 / npix)
+        dr.eval(total)
+    return total * (1.0 / len(views))
