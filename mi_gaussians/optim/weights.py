@@ -42,6 +42,12 @@ def max_weights(g: Gaussians, cameras: Sequence, cfg: RasterConfig = RasterConfi
     return best
 
 
+def _channel_sum(rgb: "mi.Float") -> "mi.Float":
+    """The sum of each (r, g, b) triple of an interleaved array: one value per pixel or per Gaussian."""
+    v = dr.unravel(mi.Vector3f, rgb)
+    return v.x + v.y + v.z
+
+
 def _probe_weights(g: Gaussians, camera, pixel_weight, cfg: RasterConfig) -> "mi.Float":
     """Per Gaussian, the sum over ``camera``'s pixels of ``pixel_weight * T * alpha`` (``pixel_weight``: (H, W) values,
     or None for 1), through the renderer's backward pass on a probe model whose every colour is 1."""
@@ -57,10 +63,7 @@ def _probe_weights(g: Gaussians, camera, pixel_weight, cfg: RasterConfig) -> "mi
     if pixel_weight is not None:
         rgb = rgb * dr.repeat(pixel_weight, 3)
     dr.backward(dr.sum(rgb))
-    grad = dr.grad(dc).array
-    idx = dr.arange(mi.UInt32, n) * 3
-    return (dr.gather(mi.Float, grad, idx) + dr.gather(mi.Float, grad, idx + 1)
-            + dr.gather(mi.Float, grad, idx + 2)) * (1.0 / (3.0 * SH_C0))
+    return _channel_sum(dr.grad(dc).array) * (1.0 / (3.0 * SH_C0))
 
 
 def error_weights(g: Gaussians, views: Sequence, sh_degree: int, background, threshold: float,
@@ -77,10 +80,8 @@ def error_weights(g: Gaussians, views: Sequence, sh_degree: int, background, thr
     for camera, target in views:
         with dr.suspend_grad():
             out = render(g, camera, background=background, sh_degree=sh_degree, cfg=cfg)
-            err = dr.abs(out.rgb.array - target.array)
             npix = camera.width * camera.height
-            i = dr.arange(mi.UInt32, npix) * 3
-            e = (dr.gather(mi.Float, err, i) + dr.gather(mi.Float, err, i + 1) + dr.gather(mi.Float, err, i + 2))
+            e = _channel_sum(dr.abs(out.rgb.array - target.array))
             lo, hi = dr.min(e), dr.max(e)
             mask = dr.select((e - lo) > threshold * (hi - lo), 1.0, 0.0)
             dr.eval(mask)
