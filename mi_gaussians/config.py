@@ -219,6 +219,12 @@ class DensifyConfig:
                                              # weight in a training view (the sum over its pixels of T * alpha, as a
                                              # share of the view's pixels: optim/weights.py) is below this; 0: off
                                              # (the reference)
+    prune_unseen: bool = False               # at densify_until_iter, remove the Gaussians no training view shows:
+                                             # blending weight below raster.alpha_min (the renderer's cut-off) of
+                                             # one pixel in every training view; false: keep them (the reference;
+                                             # on the CLI's 7k schedule they are 3 % of the model and their
+                                             # removal saves less than the weights cost; docs/benchmarks/
+                                             # work_per_step.md)
     error_gate: float = 0.0                  # densify only the candidates whose error score (their blending
                                              # weight in the high-error pixels of error_views sampled training views,
                                              # optim/weights.py error_weights) is at least this many times the

@@ -64,10 +64,10 @@ RULES = (
                                               "not use (its threshold is densify.grad_threshold)")),
     Rule("densify.grad_threshold", _unless(lambda c, _: not c.densify.absgrad,
                                            "with --absgrad the threshold is densify.absgrad_threshold")),
-    Rule("densify.weight_prune", _unless(lambda c, _: c.strategy == "default"
-                                         and c.densify.densify_until_iter < c.optim.iterations,
-                                         "it acts at densify.densify_until_iter in the default strategy, which this "
-                                         "run does not reach or use")),
+    *(Rule(key, _unless(lambda c, _: c.strategy == "default" and c.densify.densify_until_iter < c.optim.iterations,
+                        "it acts at densify.densify_until_iter in the default strategy, which this run does not reach "
+                        "or use"))
+      for key in ("densify.weight_prune", "densify.prune_unseen")),
     Rule("densify.error_[tv]*", _unless(lambda c, _: c.densify.error_gate > 0,      # error_views, error_threshold
                                         "it tunes densify.error_gate's score, and the gate is 0 (off)")),
     Rule("densify.empty_screen_fraction", _unless(lambda c, _: c.densify.empty_background != "off"

@@ -72,6 +72,48 @@ def test_weight_prune_removes_what_no_view_shows_at_the_end_of_densification():
     assert not off.refines_at(TrainConfig().densify.densify_until_iter)     # (0: the reference, nothing)
 
 
+def test_prune_unseen_removes_what_shows_less_than_the_renderers_cut_off_of_a_pixel_in_every_view():
+    import dataclasses
+
+    from mi_gaussians.config import DensifyConfig, RasterConfig, TrainConfig
+    from mi_gaussians.optim.adam import GaussianAdam
+    from mi_gaussians.optim.strategies import make_strategy
+
+    params, cam = sf.opaque_stack(seed=2, n=24)                # (hidden ones behind the opaque front, some just seen)
+    other, cam2 = sf.random_scene(seed=3, n=24, sh_degree=0, width=40, height=32)
+    g = mig.Gaussians.from_numpy(**params)
+    pixels = np.array(max_weights(g, [cam], unit="pixels"))
+    np.testing.assert_allclose(pixels, np.array(max_weights(g, [cam])) * cam.width * cam.height, rtol=1e-5)
+    cut = RasterConfig().alpha_min
+    unseen = pixels < cut
+    assert 3 <= unseen.sum() < g.n and (pixels[~unseen] < 1.5 * cut).any()    # (some just above the cut-off)
+    dens = dataclasses.replace(DensifyConfig(), densify_until_iter=100, prune_unseen=True)
+    cfg = dataclasses.replace(TrainConfig(), densify=dens)
+    strategy = make_strategy(cfg, 1.0, white_background=False, train_cameras=[cam])
+    assert strategy.unseen_weight == cut                       # (the renderer's own cut-off: one home)
+    opt = GaussianAdam(g, cfg.optim, 1.0)
+    state = strategy.initialize_state(opt.n)
+    assert strategy.refines_at(100) and not strategy.refines_at(101)
+    info = strategy.refine(opt, state, 100)
+    assert info.pruned == int(unseen.sum()) and opt.n == g.n - info.pruned and state.n == opt.n
+    np.testing.assert_array_equal(opt.gaussians.numpy()["means"], params["means"][~unseen])
+    # a Gaussian seen in any one training view stays: the same model over a second camera that sees all of them
+    seen_elsewhere = np.array(max_weights(g, [cam2], unit="pixels")) >= cut
+    assert (unseen & seen_elsewhere).any()
+    both = make_strategy(cfg, 1.0, white_background=False, train_cameras=[cam, cam2])
+    opt2 = GaussianAdam(g, cfg.optim, 1.0)
+    assert both.refine(opt2, both.initialize_state(opt2.n), 100).pruned == int((unseen & ~seen_elsewhere).sum())
+    # with weight_prune as well: both rules
+    thr = 8.0 / (cam.width * cam.height)
+    shares = pixels / (cam.width * cam.height)
+    cfg3 = dataclasses.replace(cfg, densify=dataclasses.replace(dens, weight_prune=thr))
+    s3 = make_strategy(cfg3, 1.0, white_background=False, train_cameras=[cam])
+    opt3 = GaussianAdam(g, cfg.optim, 1.0)
+    assert s3.refine(opt3, s3.initialize_state(opt3.n), 100).pruned == int(((shares < thr) | unseen).sum())
+    off = make_strategy(TrainConfig(), 1.0, white_background=False)
+    assert not off.refines_at(TrainConfig().densify.densify_until_iter)     # (off: the reference keeps them)
+
+
 def _separated_threshold(normalized: np.ndarray, near: float) -> float:
     """A threshold near ``near`` in the widest gap of the normalized errors (so that float32 and float64 agree on
     every pixel's side of it)."""

@@ -64,6 +64,9 @@ Deliberate differences from the reference code (each flagged where it is impleme
 * ``weight_prune`` (off by default; not in the reference): at ``densify_until_iter``, the Gaussians whose largest
   blending weight in a training view (a share of the image: :mod:`.weights`) is below it are removed (the trainer
   supplies ``view_weights``), so that the iterations after densification do not carry them.
+* ``prune_unseen`` (not in the reference): at ``densify_until_iter``, the Gaussians that no training view shows are
+  removed: their blending weight stays below ``raster.alpha_min`` (1/255, the renderer's cut-off for one pixel) of a
+  pixel in every training view. Removing them changes no training image by more than that.
 * ``error_gate`` (off by default; FastGS's multi-view consistent densification, Ren et al. 2025): a candidate of
   the gradient test is cloned or split only when its error score is at least ``error_gate`` times the model's mean
   score. The score is its blending weight in the high-error pixels of ``error_views`` sampled training views,
@@ -165,9 +168,13 @@ class DefaultStrategy(Strategy):
         #: the screen-size prune's threshold (a fraction of the image), 0 when it is off
         self.screen_fraction = float(cfg.max_screen_fraction if cfg.max_screen_fraction > 0 or not empty_background
                                      else cfg.empty_screen_fraction)
-        #: ``gaussians -> mi.Float``: each Gaussian's largest blending weight over the training views
-        #: (:func:`mi_gaussians.optim.weights.max_weights` on them); the trainer sets it (``densify.weight_prune``)
+        #: ``(gaussians, unit) -> mi.Float``: each Gaussian's largest blending weight over the training views
+        #: (:func:`mi_gaussians.optim.weights.max_weights` on them, ``unit`` "share" or "pixels"); the trainer sets it
+        #: (``densify.weight_prune``, ``densify.prune_unseen``)
         self.view_weights: Callable | None = None
+        #: a weight in pixels below which no view shows a Gaussian (``prune_unseen``): the renderer's cut-off
+        #: (``raster.alpha_min``), which the trainer sets with ``view_weights``
+        self.unseen_weight = 1.0 / 255.0
         #: ``(gaussians, step) -> mi.Float``: each Gaussian's error score (``densify.error_gate``); the trainer sets it
         self.view_errors: Callable | None = None
 
@@ -299,7 +306,7 @@ class DefaultStrategy(Strategy):
                 and (span <= 0 or step <= cfg.prune_large_after + span))
 
     def _weight_prunes_at(self, step: int) -> bool:
-        return self.cfg.weight_prune > 0 and step == self.cfg.densify_until_iter
+        return (self.cfg.weight_prune > 0 or self.cfg.prune_unseen) and step == self.cfg.densify_until_iter
 
     def refines_at(self, step: int) -> bool:
         return self._densifies_at(step) or self.resets_at(step) or self._weight_prunes_at(step)
@@ -395,11 +402,17 @@ class DefaultStrategy(Strategy):
         st.reset_done = dr.gather(mi.Bool, st.reset_done, dr.compress(keep))
 
     def _weight_prune(self, params: GaussianAdam, st: DensifyState) -> int:
-        """Remove the Gaussians no training view shows by a ``weight_prune`` share of its image; returns how many."""
+        """Remove the Gaussians no training view shows by a ``weight_prune`` share of its image, and with
+        ``prune_unseen`` those it shows by less than ``unseen_weight`` of a pixel; returns how many."""
         if self.view_weights is None:
-            raise ValueError("densify.weight_prune needs the training views' weights (DefaultStrategy.view_weights)")
+            raise ValueError("densify.weight_prune and densify.prune_unseen need the training views' weights "
+                             "(DefaultStrategy.view_weights)")
         self._check_size(params, st)
-        keep = self.view_weights(params.gaussians) >= float(self.cfg.weight_prune)
+        keep = dr.full(mi.Bool, True, params.n)
+        if self.cfg.weight_prune > 0:
+            keep &= self.view_weights(params.gaussians, "share") >= float(self.cfg.weight_prune)
+        if self.cfg.prune_unseen:
+            keep &= self.view_weights(params.gaussians, "pixels") >= float(self.unseen_weight)
         removed = params.n - _count(keep)
         if removed:
             self._keep_rows(params, st, keep)

@@ -24,18 +24,20 @@ CLASSES: dict[str, type[Strategy]] = {"default": DefaultStrategy, "mcmc": MCMCSt
 def make_strategy(cfg: TrainConfig, extent: float, white_background: bool, train_cameras=(),
                   empty_background: bool = False, training_views=None, background=(0.0, 0.0, 0.0)) -> Strategy:
     """The densification strategy ``cfg.strategy`` names, built from its section of ``cfg``; ``train_cameras``: the
-    training views' cameras, whose blending weights ``densify.weight_prune`` measures (:mod:`.weights`);
+    training views' cameras, whose blending weights ``densify.weight_prune`` and ``densify.prune_unseen`` measure
+    (:mod:`.weights`);
     ``empty_background``: whether the run fits an object on an empty background (:func:`empty_background`);
     ``training_views`` (a :class:`~.targets.TrainingViews`) and the ``background`` the run renders on: the views
     ``densify.error_gate`` scores the model on (:func:`error_scorer`)."""
     if cfg.strategy not in CLASSES:
         raise ValueError(f"unknown densification strategy {cfg.strategy!r} (expected one of {', '.join(STRATEGIES)})")
     strategy = CLASSES[cfg.strategy].from_config(cfg, extent, white_background, empty_background)
-    if isinstance(strategy, DefaultStrategy) and cfg.densify.weight_prune > 0:
+    if isinstance(strategy, DefaultStrategy) and (cfg.densify.weight_prune > 0 or cfg.densify.prune_unseen):
         cameras = list(train_cameras)
         if not cameras:
-            raise ValueError("densify.weight_prune needs the training cameras")
-        strategy.view_weights = lambda g: max_weights(g, cameras, cfg.raster)
+            raise ValueError("densify.weight_prune and densify.prune_unseen need the training cameras")
+        strategy.view_weights = lambda g, unit: max_weights(g, cameras, cfg.raster, unit)
+        strategy.unseen_weight = float(cfg.raster.alpha_min)
     if isinstance(strategy, DefaultStrategy) and cfg.densify.error_gate > 0:
         if training_views is None or not len(training_views):
             raise ValueError("densify.error_gate needs the training views")

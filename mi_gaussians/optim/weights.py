@@ -8,8 +8,10 @@ by the view's pixel count: "the share of the image it gives in the view that see
 the image size (a rule in pixels would: the same Gaussian covers four times the pixels of an image twice as wide).
 ``densify.weight_prune`` removes the Gaussians below a threshold at the end of densification
 (:class:`~mi_gaussians.optim.densify.DefaultStrategy`). Measured offline on trained models
-(``benchmarks/prune_scores.py``, docs/benchmarks/work_per_step.md): 10-14 % of the Gaussians of the shared objects'
-models are seen by no training view, and their removal changes no test score.
+(``benchmarks/prune_scores.py``, docs/benchmarks/work_per_step.md): 10-15 % of the Gaussians of the shared objects'
+models are seen by no training view, and their removal changes no test score. ``densify.prune_unseen`` removes
+those: a weight below the renderer's own cut-off (``raster.alpha_min``, 1/255) of one pixel in every training view
+(``unit="pixels"``: "seen by no view" is a property of the pixels, whatever the image size).
 
 :func:`error_weights` weighs the same quantity by a mask of each view's high-error pixels: FastGS's densification
 score (``densify.error_gate``), which densifies only where several views agree that the image is not yet fitted.
@@ -30,14 +32,18 @@ from ..model.gaussians import Gaussians
 from ..raster.rasterize import render
 
 
-def max_weights(g: Gaussians, cameras: Sequence, cfg: RasterConfig = RasterConfig()) -> "mi.Float":
-    """Per Gaussian of ``g``, its largest blending weight over ``cameras``, each divided by its camera's pixel count
-    (a share of the image: N values in [0, 1])."""
+def max_weights(g: Gaussians, cameras: Sequence, cfg: RasterConfig = RasterConfig(), unit: str = "share") -> "mi.Float":
+    """Per Gaussian of ``g``, its largest blending weight over ``cameras``: with ``unit="share"`` each divided by its
+    camera's pixel count (a share of the image: N values in [0, 1]), with ``unit="pixels"`` as it is (pixels' worth
+    of colour)."""
+    if unit not in ("share", "pixels"):
+        raise ValueError(f"max_weights: unit must be 'share' or 'pixels', got {unit!r}")
     best = dr.zeros(mi.Float, g.n)
     if g.n == 0:
         return best
     for camera in cameras:
-        best = dr.maximum(best, _probe_weights(g, camera, None, cfg) * (1.0 / (camera.width * camera.height)))
+        scale = 1.0 / (camera.width * camera.height) if unit == "share" else 1.0
+        best = dr.maximum(best, _probe_weights(g, camera, None, cfg) * scale)
         dr.eval(best)
     return best
 
