@@ -267,12 +267,14 @@ def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cf
     evaluations = dr.sum(i_end - start) * P        # lazy: read only by benchmarks
 
     npix = frame.width * frame.height
-    img = [dr.zeros(mi.Float, npix) for _ in range(5)]     # r, g, b, depth sum, T in image order
+    # r, g, b, depth sum, T in image order; every pixel is one lane's (one tile's), so every entry is written below
+    # and the buffers need no zeroing pass (nor do the lane-order ones: every lane writes its own)
+    img = [dr.empty(mi.Float, npix) for _ in range(5)]
     for k in range(P):
         for c, v in enumerate((C[k].x, C[k].y, C[k].z, D[k], T[k])):
             dr.scatter(img[c], v, pix[k], active=valid[k])
-    T_lane = dr.zeros(mi.Float, n_lanes * P)
-    last_lane = dr.zeros(mi.UInt32, n_lanes * P)
+    T_lane = dr.empty(mi.Float, n_lanes * P)
+    last_lane = dr.empty(mi.UInt32, n_lanes * P)
     ArrayXf, ArrayXu = _array_types()
     dr.scatter(T_lane, ArrayXf(*T), lane)
     dr.scatter(last_lane, ArrayXu(*last), lane)
