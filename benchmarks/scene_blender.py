@@ -34,6 +34,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _reference(path: Path) -> tuple:
+    """A cached reference render: (linear RGB premultiplied by Mitsuba's alpha as read, its straight colour, alpha)."""
+    from mi_gaussians.data.images import read_image
+
+    ref = read_image(path)
+    a = ref[..., 3:4] if ref.shape[2] == 4 else np.ones_like(ref[..., :1])
+    return ref, np.where(a > 0, ref[..., :3] / np.maximum(a, 1e-8), 0.0), a
+
+
 def write_dataset(scene: Path, out: Path, cache: Path, scene_cfg=None, alpha: bool = True) -> Path:
     """Write ``scene``'s training and held-out views as a Blender-layout dataset in ``out`` (once: an existing
     ``transforms_test.json`` means it is written already). ``scene_cfg``: the rig (a ``SceneConfig``)."""
@@ -46,7 +55,6 @@ def write_dataset(scene: Path, out: Path, cache: Path, scene_cfg=None, alpha: bo
 
     from mi_gaussians.config import SceneConfig
     from mi_gaussians.data.camera import GL_TO_CV
-    from mi_gaussians.data.images import read_image
     from mi_gaussians.data.scene_dataset import load_scene_dataset
     from mi_gaussians.imwrite import linear_to_srgb, to_uint8
 
@@ -59,10 +67,8 @@ def write_dataset(scene: Path, out: Path, cache: Path, scene_cfg=None, alpha: bo
             c = v.camera
             if abs(c.fx - c.fy) > 1e-6 * c.fx or abs(c.cx - c.width / 2) > 1e-6 or abs(c.cy - c.height / 2) > 1e-6:
                 raise SystemExit(f"camera {c.name}: the Blender layout needs square pixels and a centred image")
-            ref = read_image(v.image_path)                  # linear RGB, premultiplied by Mitsuba's alpha
-            a = ref[..., 3:4] if ref.shape[2] == 4 else np.ones_like(ref[..., :1])
+            ref, straight, a = _reference(v.image_path)
             if alpha:
-                straight = np.where(a > 0, ref[..., :3] / np.maximum(a, 1e-8), 0.0)
                 img = np.concatenate([linear_to_srgb(np.clip(straight, 0, 1)), a], axis=2)
             else:
                 img = linear_to_srgb(np.clip(ref[..., :3], 0, 1))
@@ -75,8 +81,8 @@ def write_dataset(scene: Path, out: Path, cache: Path, scene_cfg=None, alpha: bo
 
 
 def write_colmap(scene: Path, out: Path, cache: Path, scene_cfg=None) -> Path:
-    """Write ``scene``'s views over white and its triangulated points as a COLMAP-layout dataset in ``out`` (once:
-    an existing ``sparse/0/points3D.txt`` means it is written already)."""
+    """Write ``scene``'s views over white and its initial points (``scene_cfg.init``: triangulated by default) as a
+    COLMAP-layout dataset in ``out`` (once: an existing ``sparse/0/points3D.txt`` means it is written already)."""
     if (out / "sparse" / "0" / "points3D.txt").is_file():
         return out
     import mitsuba as mi
@@ -86,11 +92,10 @@ def write_colmap(scene: Path, out: Path, cache: Path, scene_cfg=None) -> Path:
 
     from mi_gaussians.config import DataConfig, SceneConfig
     from mi_gaussians.data.colmap import images_text
-    from mi_gaussians.data.images import read_image
     from mi_gaussians.data.scene_dataset import load_scene_dataset
     from mi_gaussians.imwrite import linear_to_srgb, to_uint8
 
-    cfg = dataclasses.replace(scene_cfg or SceneConfig(), init="triangulate")
+    cfg = scene_cfg or SceneConfig(init="triangulate")
     ds = load_scene_dataset(scene, cfg, cache_root=cache, background=(1.0, 1.0, 1.0),
                             log=lambda s: print(s, file=sys.stderr))
     # the held-out views where the COLMAP loader holds out (every 8th by name), the training views between them
@@ -111,9 +116,7 @@ def write_colmap(scene: Path, out: Path, cache: Path, scene_cfg=None) -> Path:
     model.mkdir(parents=True, exist_ok=True)
     names = []
     for i, v in enumerate(views):
-        ref = read_image(v.image_path)                  # linear RGB, premultiplied by Mitsuba's alpha
-        a = ref[..., 3:4] if ref.shape[2] == 4 else np.ones_like(ref[..., :1])
-        straight = np.where(a > 0, ref[..., :3] / np.maximum(a, 1e-8), 0.0)
+        _, straight, a = _reference(v.image_path)
         srgb = to_uint8(linear_to_srgb(np.clip(straight, 0, 1))).astype(np.float64) / 255.0
         a8 = to_uint8(np.clip(a, 0, 1)).astype(np.float64) / 255.0
         names.append(f"{i:04d}.png")
@@ -141,10 +144,12 @@ def main(argv=None) -> int:
     ap.add_argument("--spp", type=int, default=None)
     ap.add_argument("--no-alpha", action="store_true", help="RGB PNGs composited over black")
     ap.add_argument("--colmap", action="store_true", help="a COLMAP layout (views over white, triangulated points)")
+    ap.add_argument("--init", default="triangulate",
+                    help="the COLMAP layout's points (SceneConfig.init: triangulate, shapes, ...; default triangulate)")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/mi_gs_scene_blender/references"))
     args = ap.parse_args(argv)
     cfg = SceneConfig(rig=args.rig, views=args.views, test_views=args.test_views, spp=args.spp,
-                      resolution=None if args.size is None else (args.size, args.size))
+                      resolution=None if args.size is None else (args.size, args.size), init=args.init)
     scene = ROOT / "scenes" / f"{args.name}.xml"
     if args.colmap:
         write_colmap(scene, args.out, args.cache, cfg)
