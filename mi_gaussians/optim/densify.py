@@ -174,7 +174,7 @@ class DefaultStrategy(Strategy):
         self.view_weights: Callable | None = None
         #: a weight in pixels below which no view shows a Gaussian (``prune_unseen``): the renderer's cut-off
         #: (``raster.alpha_min``), which the trainer sets with ``view_weights``
-        self.unseen_weight = 1.0 / 255.0
+        self.unseen_weight: float | None = None
         #: ``(gaussians, step) -> mi.Float``: each Gaussian's error score (``densify.error_gate``); the trainer sets it
         self.view_errors: Callable | None = None
 
@@ -404,9 +404,9 @@ class DefaultStrategy(Strategy):
     def _weight_prune(self, params: GaussianAdam, st: DensifyState) -> int:
         """Remove the Gaussians no training view shows by a ``weight_prune`` share of its image, and with
         ``prune_unseen`` those it shows by less than ``unseen_weight`` of a pixel; returns how many."""
-        if self.view_weights is None:
+        if self.view_weights is None or (self.cfg.prune_unseen and self.unseen_weight is None):
             raise ValueError("densify.weight_prune and densify.prune_unseen need the training views' weights "
-                             "(DefaultStrategy.view_weights)")
+                             "(DefaultStrategy.view_weights, and unseen_weight for prune_unseen)")
         self._check_size(params, st)
         keep = dr.full(mi.Bool, True, params.n)
         if self.cfg.weight_prune > 0:
