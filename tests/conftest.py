@@ -101,3 +101,21 @@ def ray_cluster():
         yield ray.get_runtime_context().gcs_address
     finally:
         ray.shutdown()
+
+
+@pytest.fixture
+def ordered_sums():
+    """On the LLVM backend, Dr.Jit on one thread: with two, which thread takes which half of a kernel's lanes varies
+    from run to run, and with it the order in which the backward pass sums a Gaussian's contributions (its float
+    rounding); on one thread two runs of the same sums agree bit for bit. CUDA's atomics have no such switch: there
+    the fixture changes nothing."""
+    import drjit as dr
+    import mitsuba as mi
+
+    if dr.backend_v(mi.Float) != dr.JitBackend.LLVM:
+        yield
+        return
+    before = dr.thread_count()
+    dr.set_thread_count(1)
+    yield
+    dr.set_thread_count(before)

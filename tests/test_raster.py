@@ -387,22 +387,6 @@ def test_lane_layout_rejects_what_the_kernels_cannot_map():
     assert LaneLayout(pixels=4, start_lanes=16, tile_rows=4).tiles(53, 37) == (4, 10)
 
 
-@pytest.fixture
-def ordered_sums():
-    """On the LLVM backend, Dr.Jit on one thread: with two, which thread takes which half of a kernel's lanes varies
-    from run to run, and with it the order in which the backward pass sums a Gaussian's contributions (its float
-    rounding); on one thread two runs of the same sums agree bit for bit. CUDA's atomics have no such switch."""
-    import mitsuba as mi
-
-    if dr.backend_v(mi.Float) != dr.JitBackend.LLVM:
-        yield
-        return
-    before = dr.thread_count()
-    dr.set_thread_count(1)
-    yield
-    dr.set_thread_count(before)
-
-
 @pytest.mark.parametrize("footprint", ["box", "ellipse"])
 @pytest.mark.parametrize("alpha_min", [1.0 / 255.0, 1e-6, 0.2])
 def test_the_backward_packet_skip_changes_no_gradient(monkeypatch, ordered_sums, footprint, alpha_min):

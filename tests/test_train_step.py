@@ -26,15 +26,11 @@ CUDA_ATOMICS = ("CUDA's float atomics (the backward pass's scatter-adds) sum in 
 
 
 @pytest.fixture
-def one_thread():
-    """Dr.Jit on one thread: the order of atomic additions, hence every bit of a run, is then reproducible. CUDA has
-    no such switch: tests that need it are skipped there (:data:`CUDA_ATOMICS`)."""
+def one_thread(ordered_sums):
+    """Dr.Jit on one thread (conftest's ``ordered_sums``): the order of atomic additions, hence every bit of a run,
+    is then reproducible. CUDA has no such switch: tests that need it are skipped there (:data:`CUDA_ATOMICS`)."""
     if dr.backend_v(mi.Float) == dr.JitBackend.CUDA:
         pytest.skip(CUDA_ATOMICS)
-    before = dr.thread_count()
-    dr.set_thread_count(1)
-    yield
-    dr.set_thread_count(before)
 
 
 def test_capacity_binning_equals_exact_binning():
