@@ -70,7 +70,7 @@ def sh_basis(dirs, degree: int) -> list:
     return out
 
 
-def eval_sh_colors(sh_dc, sh_rest: Sequence, dirs, degree: int, *, normalize: bool = True):
+def eval_sh_colors(sh_dc, sh_rest: Sequence, dirs, degree: int, *, normalize: bool = True, clamp: bool = True):
     """RGB colour per lane: ``max(SH(dir) + 0.5, 0)`` with the reference basis; AD-differentiable.
 
     sh_dc: mi.Vector3f / mi.Color3f, the DC coefficients (one lane per Gaussian);
@@ -79,7 +79,7 @@ def eval_sh_colors(sh_dc, sh_rest: Sequence, dirs, degree: int, *, normalize: bo
     dirs: mi.Vector3f, ``mean - camera_centre`` (normalized here unless ``normalize=False``; AD flows through);
     degree: active SH degree 0..3 (<= the stored degree).
     Returns a 3-vector of the coefficients' type (mi.Vector3f for :func:`gather_sh_coeffs` output), clamped at 0 with
-    zero gradient where the unclamped value is negative."""
+    zero gradient where the unclamped value is negative (``clamp=False``: the unclamped value)."""
     degree = _check_degree(degree, len(sh_rest))
     d = dr.normalize(dirs) if normalize else dirs
     basis = sh_basis(d, degree)
@@ -87,7 +87,39 @@ def eval_sh_colors(sh_dc, sh_rest: Sequence, dirs, degree: int, *, normalize: bo
     for i in range(1, len(basis)):
         c = c + basis[i] * sh_rest[i - 1]
     c = c + 0.5
-    return dr.select(c < 0, 0.0, c)
+    return dr.select(c < 0, 0.0, c) if clamp else c
+
+
+def sh_dir_grad(dirs, degree: int, weights: Sequence) -> "mi.Vector3f":
+    """``sum_i weights[i - 1] grad Y_i(dirs)`` over the basis functions of degree 1 to ``degree`` (``weights``: one
+    Float per function, in the order of :func:`sh_basis` without Y_00): the gradient of the basis' polynomials in
+    (x, y, z) at ``dirs``, as the reference's ``computeColorFromSH`` backward takes it (before the normalization)."""
+    degree = _check_degree(degree, len(weights))
+    x, y, z = dirs.x, dirs.y, dirs.z
+    w = list(weights)
+    zero = dr.zeros(type(x), 1)
+    gx, gy, gz = zero, zero, zero
+    if degree >= 1:
+        gx = gx - SH_C1 * w[2]
+        gy = gy - SH_C1 * w[0]
+        gz = gz + SH_C1 * w[1]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        xy, yz, xz = x * y, y * z, x * z
+        c0, c1, c2, c3, c4 = (SH_C2[0] * w[3], SH_C2[1] * w[4], SH_C2[2] * w[5], SH_C2[3] * w[6],
+                              SH_C2[4] * w[7])
+        gx = gx + c0 * y - 2.0 * c2 * x + c3 * z + 2.0 * c4 * x
+        gy = gy + c0 * x + c1 * z - 2.0 * c2 * y - 2.0 * c4 * y
+        gz = gz + c1 * y + 4.0 * c2 * z + c3 * x
+        if degree >= 3:
+            k = [SH_C3[i] * w[8 + i] for i in range(7)]
+            gx = gx + (6.0 * k[0] * xy + k[1] * yz - 2.0 * k[2] * xy - 6.0 * k[3] * xz
+                       + k[4] * (4.0 * zz - 3.0 * xx - yy) + 2.0 * k[5] * xz + k[6] * (3.0 * xx - 3.0 * yy))
+            gy = gy + (k[0] * (3.0 * xx - 3.0 * yy) + k[1] * xz + k[2] * (4.0 * zz - xx - 3.0 * yy)
+                       - 6.0 * k[3] * yz - 2.0 * k[4] * xy - 2.0 * k[5] * yz - 6.0 * k[6] * xy)
+            gz = gz + (k[1] * xy + 8.0 * k[2] * yz + k[3] * (6.0 * zz - 3.0 * xx - 3.0 * yy) + 8.0 * k[4] * xz
+                       + k[5] * (xx - yy))
+    return mi.Vector3f(gx, gy, gz)
 
 
 def gather_sh_coeffs(sh_dc: "mi.TensorXf", sh_rest: "mi.TensorXf", degree: int, index=None):

@@ -121,6 +121,14 @@ def _compensation(det_sigma, inv_det):
     return dr.select(positive, dr.sqrt(dr.select(positive, ratio, 1.0)), 0.0)
 
 
+def guard_limits(view: ViewParams, cfg: RasterConfig) -> tuple:
+    """(x0, x1, y0, y1): the interval the Jacobian clamps the normalized coordinates t_x / t_z and t_y / t_z to, the
+    image widened by the guard band on each side (see the module docstring)."""
+    band = 0.5 * (cfg.guard_band - 1.0)   # 0.15: the reference's 1.3 tan(fov / 2) band, as a fraction of the size
+    return ((-band * view.width_f - view.cx) / view.fx, ((1.0 + band) * view.width_f - view.cx) / view.fx,
+            (-band * view.height_f - view.cy) / view.fy, ((1.0 + band) * view.height_f - view.cy) / view.fy)
+
+
 def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig, tile_rows: int = TILE) -> Projected:
     """Project activated Gaussians for a view; the tile rectangles are those of a grid of ``TILE`` columns by
     ``tile_rows`` rows per tile (the blend's :class:`~.blend.LaneLayout`)."""
@@ -134,11 +142,7 @@ def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig, tile_rows: 
     inv_z = dr.rcp(dr.select(in_front, tz, 1.0))
 
     # Jacobian with the guard band (clamped normalized coordinates; see the module docstring)
-    band = 0.5 * (cfg.guard_band - 1.0)   # 0.15: the reference's 1.3 tan(fov / 2) band, as a fraction of the size
-    lim_x0 = (-band * view.width_f - view.cx) / view.fx
-    lim_x1 = ((1.0 + band) * view.width_f - view.cx) / view.fx
-    lim_y0 = (-band * view.height_f - view.cy) / view.fy
-    lim_y1 = ((1.0 + band) * view.height_f - view.cy) / view.fy
+    lim_x0, lim_x1, lim_y0, lim_y1 = guard_limits(view, cfg)
     u = fclamp(tcam.x * inv_z, lim_x0, lim_x1)
     v = fclamp(tcam.y * inv_z, lim_y0, lim_y1)
     j00 = view.fx * inv_z

@@ -28,6 +28,7 @@ from .binning import Bins, bin_gaussians
 from . import blend as _blend_module
 from .blend import BlendStats, blend, make_frame
 from .projection import GaussianArrays, ViewParams, project
+from .projection_backward import project_model
 
 
 @dataclass
@@ -81,22 +82,31 @@ def render(g: Gaussians, camera: Camera | ViewParams, background=(0.0, 0.0, 0.0)
     deg = g.sh_degree if sh_degree is None else int(sh_degree)
     if deg < 0 or deg > g.sh_degree:
         raise ValueError(f"sh_degree {sh_degree} is outside 0..{g.sh_degree} (the model's SH degree)")
-    ga = GaussianArrays.from_gaussians(g, deg) if g.n > 0 else None
-    return render_arrays(ga, camera, background, cfg, capacity)
+    view = camera if isinstance(camera, ViewParams) else ViewParams.from_camera(camera)
+    projector = (lambda rows: project_model(g, deg, view, cfg, rows)) if g.n > 0 else None
+    return _render(projector, view, background, cfg, capacity)
 
 
 def render_arrays(ga: GaussianArrays | None, camera: Camera | ViewParams, background=(0.0, 0.0, 0.0),
                   cfg: RasterConfig = RasterConfig(), capacity: int | None = None) -> RenderOutput:
     """Render activated Gaussians (``None`` or N = 0: an empty scene) for a camera or its prepared
-    :class:`ViewParams`. ``capacity``: see :func:`~mi_gaussians.raster.binning.bin_gaussians`."""
-    bg = _background(background)
+    :class:`ViewParams`; gradients through Dr.Jit's AD of the projection. ``capacity``: see
+    :func:`~mi_gaussians.raster.binning.bin_gaussians`."""
     view = camera if isinstance(camera, ViewParams) else ViewParams.from_camera(camera)
+    projector = (lambda rows: project(ga, view, cfg, rows)) if ga is not None and dr.width(ga.opacity) > 0 \
+        else None
+    return _render(projector, view, background, cfg, capacity)
+
+
+def _render(projector, view: ViewParams, background, cfg: RasterConfig, capacity: int | None) -> RenderOutput:
+    """Binning and blending of what ``projector(tile_rows)`` projects (None: an empty scene)."""
+    bg = _background(background)
     W, H = view.width, view.height
     layout = _blend_module.lane_layout()      # (looked up at each render: benchmarks and tests swap it)
     tiles_x, tiles_y = layout.tiles(W, H)
 
-    if ga is not None and dr.width(ga.opacity) > 0:
-        proj = project(ga, view, cfg, layout.tile_rows)
+    if projector is not None:
+        proj = projector(layout.tile_rows)
         bins = bin_gaussians(proj.depth, proj.rect, proj.tile_count, tiles_x, tiles_y, capacity, proj.ellipse,
                              (view.width_f, view.height_f))
         radii = proj.radii
