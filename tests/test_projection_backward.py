@@ -165,3 +165,29 @@ def test_which_path_a_render_takes():
     assert uses_hand_written_backward(g, view)
     dr.enable_grad(view.fx)
     assert not uses_hand_written_backward(g, view)
+
+
+def test_what_no_gradient_reaches_gets_zeros_as_from_ad():
+    """A non-finite view (a diverged pose correction) culls every Gaussian, and their intermediates are NaN: AD scales
+    no derivative by a zero gradient, so their gradients are zeros, and so are ours (0 * NaN would be NaN)."""
+    import dataclasses
+
+    params, cam = sf.random_scene(0, n=30, sh_degree=1)
+    grads = []
+    for hand_written in (True, False):
+        g = mig.Gaussians.from_numpy(**params)
+        for k in NAMES:
+            dr.enable_grad(getattr(g, k))
+        view = ViewParams.from_camera(cam)
+        nan = mi.Float(float("nan"))
+        dr.enable_grad(nan)
+        view = dataclasses.replace(view, R=mi.Matrix3f([[view.R[i][j] + nan for j in range(3)] for i in range(3)]),
+                                   t=view.t + nan)
+        assert uses_hand_written_backward(g, view)
+        out = render(g, view, background=BACKGROUND, capacity=4096) if hand_written else \
+            render_arrays(GaussianArrays.from_gaussians(g, g.sh_degree), view, background=BACKGROUND, capacity=4096)
+        dr.backward(dr.sum(out.rgb.array), flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+        grads.append({k: np.array(dr.grad(getattr(g, k))) for k in NAMES})
+    for k in NAMES:
+        np.testing.assert_array_equal(grads[0][k], 0.0, err_msg=k)
+        np.testing.assert_array_equal(grads[1][k], 0.0, err_msg=k)

@@ -5,15 +5,18 @@ values (it runs that code), and gradients equal up to float rounding to those Dr
 the reference (``tests/test_projection_backward.py`` compares the two on every branch: culled, clamped to the guard
 band, anti-aliased, every SH degree, colours clamped at 0, degenerate quaternions, a depth gradient). Why: on the CPU
 the AD's reverse of the projection was the step's largest kernel after the blend's two (1,431 operations per Gaussian
-on a 7k model of mi_objects), and the gradients of the parameter tables it wrote were zeroed first (a memset of the
-45 SH coefficients per Gaussian alone took 1 ms of a 34 ms step). Here the reverse recomputes the forward's
-intermediates from the tables in the same kernel and writes every element of each gradient table once, with plain
-scatters into unzeroed buffers (the tables of the inactive SH bands get zeros).
+on a 7k model of mi_objects), and the gradient tables it scattered into were zeroed first (a memset of the 45 SH
+coefficients per Gaussian alone took 1 ms of a 34 ms step). Here the reverse recomputes the forward's intermediates
+from the tables in one kernel and writes every element of each gradient table once, with plain scatters into
+unzeroed buffers (the inactive SH bands get zeros): that kernel takes about what AD's did, the memsets are gone, and
+the frozen step takes about 0.97x the time (docs/benchmarks/work_per_step.md).
 
 The derivation is the reference's (``backward.cu``: ``computeColorFromSH``, ``computeCov2DCUDA``, ``computeCov3D``;
 gsplat's ``fully_fused_projection`` backward) on our forward: the guard band clamps the normalized coordinates of the
 Jacobian only (their gradient is zero where clamped), the projected mean is never clamped, culled Gaussians compute
-with ``z = 1``, and every ``select`` passes its gradient exactly where the forward's does.
+with ``z = 1``, and every ``select`` passes its gradient exactly where the forward's does. A Gaussian that no output's
+gradient reaches gets zeros, as from AD, which never scales a derivative by a zero gradient (its intermediates may
+be NaN: a diverged pose correction makes the whole view so).
 
 Used by :func:`.rasterize.render` when the model's tables or the view's pose (``R``, ``t``, ``center``: a pose
 correction moves them differentiably, ``--pose-opt``) carry gradients and the intrinsics do not; their gradients are
@@ -190,7 +193,16 @@ def projection_vjp(x: _Inputs, view: ViewParams, cfg: RasterConfig, g_mean2d, g_
         rows = [g_t[i] * p + (j00 * g_T0 if i == 0 else j11 * g_T1 if i == 1 else j02 * g_T0 + j12 * g_T1)
                 for i in range(3)]
         out["R"], out["t"], out["center"] = rows, g_t, -g_dir_p
-    return out
+    # A Gaussian no output's gradient reaches gets zeros, as from AD, which scales no derivative by a zero gradient:
+    # its intermediates may be infinite or NaN (a non-finite view, a culled or degenerate Gaussian), and 0 * NaN is NaN
+    reached = ((g_mean2d.x != 0) | (g_mean2d.y != 0) | (g_conic.x != 0) | (g_conic.y != 0) | (g_conic.z != 0)
+               | (g_opacity != 0) | (g_color.x != 0) | (g_color.y != 0) | (g_color.z != 0) | (g_depth != 0))
+    return {k: [_only(reached, r) for r in v] if isinstance(v, list) else _only(reached, v) for k, v in out.items()}
+
+
+def _only(mask, v):
+    """``v`` where ``mask``, zeros elsewhere (any Dr.Jit vector or float array)."""
+    return dr.select(mask, v, type(v)(0.0))
 
 
 def _quaternion_vjp(q, G) -> "mi.Vector4f":
