@@ -419,10 +419,12 @@ def test_checkpoint_and_resume_keep_the_corrections(scene, tmp_path, one_thread)
     assert poses["optimized"] and poses["rotation_error_degrees"]["start"] == 0.0
 
 
-def test_a_known_rotation_error_is_undone(scene, tmp_path):  # noqa: F811
+def test_a_known_rotation_error_is_undone(scene, tmp_path, ordered_sums):  # noqa: F811
     """Every training camera turned by 1 degree: with --pose-opt the cameras end nearer the truth and the held-out
     views score higher than the same run without it. (Measured at 600 iterations, rate 1e-4: 0.61 degrees left and
-    24.3 dB, against 1.0 degrees and 21.5 dB without, and 26.0 dB with exact cameras.)"""
+    24.3 dB, against 1.0 degrees and 21.5 dB without, and 26.0 dB with exact cameras.) On one thread (``ordered_sums``):
+    on two, the order of the gradients' sums varies from run to run, and so did the margin: +1.4 to +2.7 dB over five
+    pairs of runs, against the 1.5 asked; on one thread it is +2.18."""
     cfg = small_config(600)
     plain = _noisy_trainer(scene, cfg, tmp_path / "plain")
     m0 = plain.run()
