@@ -79,7 +79,8 @@ def _sweep(srcs: list, shape: tuple, axis: int, weights: list, tap_fn, finish_fn
         block = _BLOCK_GPU
     else:
         block = _BLOCK_Y if axis == 0 else _BLOCK_X
-    block = -(-min(block, length) // unroll) * unroll
+    block = -(-length // -(-length // block))     # the blocks share the line evenly: the last is not mostly padding
+    block = -(-block // unroll) * unroll
     n_lines = -(-W * C // _TILE) * _TILE if axis == 0 else H * C
     n_blocks = -(-length // block)
     lane = dr.arange(UInt, n_blocks * n_lines)
