@@ -33,7 +33,7 @@ import mitsuba as mi
 
 from ..config import RasterConfig
 from ..conventions import SH_C0
-from ..drjit_utils import fmax, quaternion_to_matrix
+from ..drjit_utils import fmax, quaternion_to_matrix, row_vectors, sigmoid
 from ..model.gaussians import Gaussians
 from ..model.sh import eval_sh_colors, sh_basis, sh_dir_grad
 from .projection import GaussianArrays, Projected, ViewParams, guard_limits, project
@@ -44,13 +44,6 @@ class _Holder:
     dataclass arguments)."""
 
     proj: Projected | None = None
-
-
-def _rows(flat, per_row: int, count: int) -> list:
-    """The first ``count`` of the ``per_row`` floats of each row of ``flat`` (plain gathers, no AD)."""
-    n = dr.width(flat) // per_row
-    base = dr.arange(mi.UInt32, n) * per_row
-    return [dr.gather(mi.Float, flat, base + j) for j in range(count)]
 
 
 def _table(columns: list, n: int) -> "mi.Float":
@@ -70,19 +63,16 @@ class _Inputs:
     """The raw parameters of a model as per-Gaussian arrays (detached), in the layout of :class:`Gaussians`."""
 
     def __init__(self, means, scales, rotations, opacities, sh_dc, sh_rest, degree: int, k_rest: int):
-        n_rest = (degree + 1) ** 2 - 1
-        self.p = mi.Point3f(*_rows(means, 3, 3))
-        self.log_s = mi.Vector3f(*_rows(scales, 3, 3))
-        self.q = mi.Vector4f(*_rows(rotations, 4, 4))
+        self.p = row_vectors(mi.Point3f, means)[0]
+        self.log_s = row_vectors(mi.Vector3f, scales)[0]
+        self.q = row_vectors(mi.Vector4f, rotations)[0]
         self.logit = mi.Float(opacities)
-        self.dc = mi.Vector3f(*_rows(sh_dc, 3, 3))
-        rest = _rows(sh_rest, 3 * k_rest, 3 * n_rest) if n_rest else []
-        self.rest = [mi.Vector3f(*rest[3 * j:3 * j + 3]) for j in range(n_rest)]
+        self.dc = row_vectors(mi.Vector3f, sh_dc)[0]
+        self.rest = row_vectors(mi.Vector3f, sh_rest, k_rest, (degree + 1) ** 2 - 1) if k_rest else []
         self.degree = degree
 
     def arrays(self) -> GaussianArrays:
-        e = dr.exp(-self.logit)
-        return GaussianArrays(means=self.p, sigmas=dr.exp(self.log_s), quats=self.q, opacity=dr.rcp(1.0 + e),
+        return GaussianArrays(means=self.p, sigmas=dr.exp(self.log_s), quats=self.q, opacity=sigmoid(self.logit),
                               sh_dc=self.dc, sh_rest=self.rest, sh_degree=self.degree)
 
 
@@ -124,7 +114,7 @@ def projection_vjp(x: _Inputs, view: ViewParams, cfg: RasterConfig, g_mean2d, g_
     cov_c = sig_c + cfg.dilation
     inv_det = dr.rcp(cov_a * cov_c - cov_b * cov_b)
     e = dr.exp(-x.logit)
-    o = dr.rcp(1.0 + e)
+    o = sigmoid(x.logit)                    # (its derivative e o^2, as AD takes it)
 
     # ---- colour: max(SH(dir) + 0.5, 0), dir = (p - centre) / |p - centre|
     dvec = p - view.center
