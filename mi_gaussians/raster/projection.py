@@ -129,11 +129,44 @@ def guard_limits(view: ViewParams, cfg: RasterConfig) -> tuple:
             (-band * view.height_f - view.cy) / view.fy, ((1.0 + band) * view.height_f - view.cy) / view.fy)
 
 
-def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig, tile_rows: int = TILE) -> Projected:
-    """Project activated Gaussians for a view; the tile rectangles are those of a grid of ``TILE`` columns by
-    ``tile_rows`` rows per tile (the blend's :class:`~.blend.LaneLayout`)."""
-    means, s, quats, opacity = ga.means, ga.sigmas, ga.quats, ga.opacity
+@dataclass
+class Covariance2D:
+    """The projection's intermediates up to the dilated 2D covariance (one home for the forward and the hand-written
+    reverse mode of :mod:`.projection_backward`): camera-space mean, culling, the Jacobian with its guard band (``u``,
+    ``v`` the clamped normalized coordinates, ``u_free``/``v_free`` where the clamp passes their gradient), ``T = J W``
+    (rows ``T0``, ``T1``), the rotation's columns ``col``, ``d0[k] = T0 . col[k]`` (``d1`` likewise), ``a0 = d0 s``,
+    ``a1 = d1 s``, the undilated (``sig_a``, ``cov_b``, ``sig_c``) and dilated (``cov_a``, ``cov_b``, ``cov_c``)
+    entries, the determinant and its inverse."""
 
+    tcam: object
+    in_front: object
+    inv_z: object
+    u: object
+    v: object
+    u_free: object
+    v_free: object
+    j00: object
+    j02: object
+    j11: object
+    j12: object
+    T0: object
+    T1: object
+    col: list
+    d0: list
+    d1: list
+    a0: list
+    a1: list
+    sig_a: object
+    cov_b: object
+    sig_c: object
+    cov_a: object
+    cov_c: object
+    det: object
+    inv_det: object
+
+
+def covariance_2d(means, sigmas, quats, view: ViewParams, cfg: RasterConfig) -> Covariance2D:
+    """EWA: ``(J W R S)(J W R S)^T`` plus the dilation, with everything it is made of (:class:`Covariance2D`)."""
     # Camera space
     tcam = view.R @ means + view.t
     tz = tcam.z
@@ -143,8 +176,9 @@ def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig, tile_rows: 
 
     # Jacobian with the guard band (clamped normalized coordinates; see the module docstring)
     lim_x0, lim_x1, lim_y0, lim_y1 = guard_limits(view, cfg)
-    u = fclamp(tcam.x * inv_z, lim_x0, lim_x1)
-    v = fclamp(tcam.y * inv_z, lim_y0, lim_y1)
+    xu, xv = tcam.x * inv_z, tcam.y * inv_z
+    u = fclamp(xu, lim_x0, lim_x1)
+    v = fclamp(xv, lim_y0, lim_y1)
     j00 = view.fx * inv_z
     j02 = -view.fx * u * inv_z
     j11 = view.fy * inv_z
@@ -157,15 +191,37 @@ def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig, tile_rows: 
     T1 = j11 * W[1] + j12 * W[2]
     # columns of M = R S: M[:, k] = R[:, k] * s_k; (T M)_{rk} = dot(T_r, R[:, k]) * s_k
     col = [mi.Vector3f(Rq[0][k], Rq[1][k], Rq[2][k]) for k in range(3)]
-    a0 = [dr.dot(T0, col[k]) * s[k] for k in range(3)]
-    a1 = [dr.dot(T1, col[k]) * s[k] for k in range(3)]
+    d0 = [dr.dot(T0, col[k]) for k in range(3)]
+    d1 = [dr.dot(T1, col[k]) for k in range(3)]
+    a0 = [d0[k] * sigmas[k] for k in range(3)]
+    a1 = [d1[k] * sigmas[k] for k in range(3)]
     sig_a = a0[0] * a0[0] + a0[1] * a0[1] + a0[2] * a0[2]
     cov_b = a0[0] * a1[0] + a0[1] * a1[1] + a0[2] * a1[2]
     sig_c = a1[0] * a1[0] + a1[1] * a1[1] + a1[2] * a1[2]
     cov_a = sig_a + cfg.dilation
     cov_c = sig_c + cfg.dilation
     det = cov_a * cov_c - cov_b * cov_b
-    inv_det = dr.rcp(det)
+    return Covariance2D(tcam=tcam, in_front=in_front, inv_z=inv_z, u=u, v=v,
+                        u_free=(xu > lim_x0) & (xu < lim_x1), v_free=(xv > lim_y0) & (xv < lim_y1),
+                        j00=j00, j02=j02, j11=j11, j12=j12, T0=T0, T1=T1, col=col, d0=d0, d1=d1, a0=a0, a1=a1,
+                        sig_a=sig_a, cov_b=cov_b, sig_c=sig_c, cov_a=cov_a, cov_c=cov_c, det=det,
+                        inv_det=dr.rcp(det))
+
+
+def view_directions(means, view: ViewParams) -> tuple:
+    """(``d = mean - camera centre``, ``d / |d|``): the SH colour's view direction, before and after normalization."""
+    d = means - view.center
+    return d, d * dr.rsqrt(fmax(dr.squared_norm(d), 1e-30))
+
+
+def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig, tile_rows: int = TILE) -> Projected:
+    """Project activated Gaussians for a view; the tile rectangles are those of a grid of ``TILE`` columns by
+    ``tile_rows`` rows per tile (the blend's :class:`~.blend.LaneLayout`)."""
+    means, opacity = ga.means, ga.opacity
+    geo = covariance_2d(means, ga.sigmas, ga.quats, view, cfg)
+    tcam, tz, in_front, inv_z = geo.tcam, geo.tcam.z, geo.in_front, geo.inv_z
+    sig_a, cov_b, sig_c, cov_a, cov_c, det, inv_det = geo.sig_a, geo.cov_b, geo.sig_c, geo.cov_a, geo.cov_c, geo.det, \
+        geo.inv_det
     conic = mi.Vector3f(cov_c * inv_det, -cov_b * inv_det, cov_a * inv_det)
     if cfg.antialiased:
         opacity = opacity * _compensation(sig_a * sig_c - cov_b * cov_b, inv_det)
@@ -173,9 +229,8 @@ def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig, tile_rows: 
     mean2d = mi.Point2f(view.fx * tcam.x * inv_z + view.cx, view.fy * tcam.y * inv_z + view.cy)
 
     # Colour from SH (view direction from the camera centre to the mean)
-    d = means - view.center
-    dirs = d * dr.rsqrt(fmax(dr.squared_norm(d), 1e-30))
-    color = mi.Color3f(eval_sh_colors(ga.sh_dc, ga.sh_rest, dirs, ga.sh_degree, normalize=False))
+    color = mi.Color3f(eval_sh_colors(ga.sh_dc, ga.sh_rest, view_directions(means, view)[1], ga.sh_degree,
+                                      normalize=False))
 
     # ---- footprint, culling, tile rectangle (no gradients needed)
     with dr.suspend_grad():

@@ -33,10 +33,10 @@ import mitsuba as mi
 
 from ..config import RasterConfig
 from ..conventions import SH_C0
-from ..drjit_utils import fmax, quaternion_to_matrix, row_vectors, sigmoid
+from ..drjit_utils import fmax, row_vectors, sigmoid
 from ..model.gaussians import Gaussians
 from ..model.sh import eval_sh_colors, sh_basis, sh_dir_grad
-from .projection import GaussianArrays, Projected, ViewParams, guard_limits, project
+from .projection import GaussianArrays, Projected, ViewParams, covariance_2d, project, view_directions
 
 
 class _Holder:
@@ -85,42 +85,20 @@ def projection_vjp(x: _Inputs, view: ViewParams, cfg: RasterConfig, g_mean2d, g_
     s = dr.exp(x.log_s)
     W = view.R
 
-    # ---- the forward's intermediates (as projection.project computes them)
-    tcam = W @ p + view.t
-    tz = tcam.z
-    in_front = tz > cfg.near_plane
-    iz = dr.rcp(dr.select(in_front, tz, 1.0))
-    lim_x0, lim_x1, lim_y0, lim_y1 = guard_limits(view, cfg)
-    xu, xv = tcam.x * iz, tcam.y * iz
-    u_free = (xu > lim_x0) & (xu < lim_x1)          # where fclamp passes its gradient
-    v_free = (xv > lim_y0) & (xv < lim_y1)
-    u = dr.select(u_free, xu, dr.select(xu > lim_x0, lim_x1, lim_x0))
-    v = dr.select(v_free, xv, dr.select(xv > lim_y0, lim_y1, lim_y0))
+    # ---- the forward's intermediates (projection.project's own)
+    geo = covariance_2d(p, s, q, view, cfg)
+    tcam, in_front, iz, u, v = geo.tcam, geo.in_front, geo.inv_z, geo.u, geo.v
+    j00, j02, j11, j12, T0, T1, col = geo.j00, geo.j02, geo.j11, geo.j12, geo.T0, geo.T1, geo.col
+    d0, d1, a0, a1 = geo.d0, geo.d1, geo.a0, geo.a1
+    sig_a, cov_b, sig_c, cov_a, cov_c, inv_det = geo.sig_a, geo.cov_b, geo.sig_c, geo.cov_a, geo.cov_c, geo.inv_det
     fx, fy = view.fx, view.fy
-    j00, j02 = fx * iz, -fx * u * iz
-    j11, j12 = fy * iz, -fy * v * iz
-    T0 = j00 * W[0] + j02 * W[2]
-    T1 = j11 * W[1] + j12 * W[2]
-    Rq = quaternion_to_matrix(q)
-    col = [mi.Vector3f(Rq[0][k], Rq[1][k], Rq[2][k]) for k in range(3)]
-    d0 = [dr.dot(T0, col[k]) for k in range(3)]
-    d1 = [dr.dot(T1, col[k]) for k in range(3)]
-    a0 = [d0[k] * s[k] for k in range(3)]
-    a1 = [d1[k] * s[k] for k in range(3)]
-    sig_a = a0[0] * a0[0] + a0[1] * a0[1] + a0[2] * a0[2]
-    cov_b = a0[0] * a1[0] + a0[1] * a1[1] + a0[2] * a1[2]
-    sig_c = a1[0] * a1[0] + a1[1] * a1[1] + a1[2] * a1[2]
-    cov_a = sig_a + cfg.dilation
-    cov_c = sig_c + cfg.dilation
-    inv_det = dr.rcp(cov_a * cov_c - cov_b * cov_b)
     e = dr.exp(-x.logit)
     o = sigmoid(x.logit)                    # (its derivative e o^2, as AD takes it)
 
     # ---- colour: max(SH(dir) + 0.5, 0), dir = (p - centre) / |p - centre|
-    dvec = p - view.center
+    dvec, dirs = view_directions(p, view)
     n2 = dr.squared_norm(dvec)
     rn = dr.rsqrt(fmax(n2, 1e-30))
-    dirs = dvec * rn
     basis = sh_basis(dirs, x.degree)
     c = eval_sh_colors(x.dc, x.rest, dirs, x.degree, normalize=False, clamp=False)
     gc = mi.Vector3f(*[dr.select(c[i] < 0, 0.0, g_color[i]) for i in range(3)])
@@ -167,8 +145,8 @@ def projection_vjp(x: _Inputs, view: ViewParams, cfg: RasterConfig, g_mean2d, g_
     # ---- the Jacobian (through the clamped coordinates) and the mean
     g_j00, g_j02 = dr.dot(g_T0, W[0]), dr.dot(g_T0, W[2])
     g_j11, g_j12 = dr.dot(g_T1, W[1]), dr.dot(g_T1, W[2])
-    g_xu = dr.select(u_free, -fx * iz * g_j02, 0.0)
-    g_xv = dr.select(v_free, -fy * iz * g_j12, 0.0)
+    g_xu = dr.select(geo.u_free, -fx * iz * g_j02, 0.0)
+    g_xv = dr.select(geo.v_free, -fy * iz * g_j12, 0.0)
     g_iz = fx * (g_j00 - u * g_j02) + fy * (g_j11 - v * g_j12)
     g_tx = (g_xu + g_mean2d.x * fx) * iz
     g_ty = (g_xv + g_mean2d.y * fy) * iz
