@@ -34,7 +34,7 @@ import mitsuba as mi
 from ..config import RasterConfig
 from ..conventions import SH_C0
 from ..drjit_utils import fmax, row_vectors, sigmoid
-from ..model.gaussians import Gaussians
+from ..model.gaussians import PARAMETER_NAMES, Gaussians
 from ..model.sh import eval_sh_colors, sh_basis, sh_dir_grad
 from .projection import GaussianArrays, Projected, ViewParams, covariance_2d, project, view_directions
 
@@ -209,7 +209,7 @@ class ProjectOp(dr.CustomOp):
 
     def backward(self):
         g_mean2d, g_conic, g_opacity, g_color, g_depth = self.grad_out()
-        view_on = self.enabled[len(_TABLES):]
+        view_on = self.enabled[len(PARAMETER_NAMES):]
         g = projection_vjp(self.x, self.view, self.cfg, mi.Vector2f(g_mean2d), mi.Vector3f(g_conic),
                            mi.Float(g_opacity), mi.Vector3f(g_color), mi.Float(g_depth), view_grads=any(view_on))
         n = dr.width(self.x.logit)
@@ -218,18 +218,17 @@ class ProjectOp(dr.CustomOp):
         columns = {"means": list(g["means"]), "scales": list(g["scales"]), "rotations": list(g["rotations"]),
                    "opacities": [g["opacities"]], "sh_dc": list(g["sh_dc"]),
                    "sh_rest": rest + [zero] * (3 * self.k_rest - len(rest))}
-        tables = {name: _table(columns[name], n) for name, on in zip(_TABLES, self.enabled) if on and columns[name]}
-        view = {}
-        if any(view_on):
-            # sums over the Gaussians: their shares, evaluated with the tables, then reduced
-            shares = {"R": [c for row in g["R"] for c in row], "t": list(g["t"]), "center": list(g["center"])}
-            view = {name: _table(shares[name], n) for name, on in zip(_VIEW, view_on) if on}
-        dr.eval(tables, view)    # one kernel: each table evaluated on its own would run the whole reverse pass again
+        tables = {name: _table(columns[name], n)
+                  for name, on in zip(PARAMETER_NAMES, self.enabled) if on and columns[name]}
+        # the view's gradients are sums of each Gaussian's share, evaluated with the tables and reduced after
+        shares = {"R": [c for row in g["R"] for c in row], "t": list(g["t"]), "center": list(g["center"])} \
+            if any(view_on) else {}
+        shares = {name: shares[name] for name, on in zip(_VIEW, view_on) if on}
+        dr.eval(tables, shares)  # one kernel: each table evaluated on its own would run the whole reverse pass again
         for name, table in tables.items():
             self.set_grad_in(name, table)
-        for name, table in view.items():
-            per_row = 9 if name == "R" else 3
-            sums = [dr.sum(dr.gather(mi.Float, table, dr.arange(mi.UInt32, n) * per_row + k)) for k in range(per_row)]
+        for name, share in shares.items():
+            sums = [dr.sum(c) for c in share]
             if name == "R":
                 self.set_grad_in(name, mi.Matrix3f([[sums[3 * i + j] for j in range(3)] for i in range(3)]))
             else:
@@ -239,7 +238,6 @@ class ProjectOp(dr.CustomOp):
         return "mi_gaussians.Project"
 
 
-_TABLES = ("means", "scales", "rotations", "opacities", "sh_dc", "sh_rest")
 _VIEW = ("R", "t", "center")
 
 
@@ -248,7 +246,7 @@ def uses_hand_written_backward(g: Gaussians, view: ViewParams) -> bool:
     (``R``, ``t``, ``center``) carry gradients, and the intrinsics do not."""
     if dr.grad_enabled((view.fx, view.fy, view.cx, view.cy, view.width_f, view.height_f)):
         return False
-    return dr.grad_enabled((tuple(getattr(g, t) for t in _TABLES), view.R, view.t, view.center))
+    return dr.grad_enabled((tuple(getattr(g, t) for t in PARAMETER_NAMES), view.R, view.t, view.center))
 
 
 def project_model(g: Gaussians, degree: int, view: ViewParams, cfg: RasterConfig, tile_rows: int) -> Projected:
@@ -256,7 +254,7 @@ def project_model(g: Gaussians, degree: int, view: ViewParams, cfg: RasterConfig
     mode of :class:`ProjectOp` where :func:`uses_hand_written_backward`."""
     if not uses_hand_written_backward(g, view):
         return project(GaussianArrays.from_gaussians(g, degree), view, cfg, tile_rows)
-    tables = [getattr(g, t) for t in _TABLES]
+    tables = [getattr(g, t) for t in PARAMETER_NAMES]
     k_rest = int(g.sh_rest.shape[1]) if len(g.sh_rest.shape) == 3 else 0
     holder = _Holder()
     enabled = tuple(bool(dr.grad_enabled(t)) for t in tables) + tuple(
