@@ -208,10 +208,17 @@ def covariance_2d(means, sigmas, quats, view: ViewParams, cfg: RasterConfig) -> 
                         inv_det=dr.rcp(det))
 
 
+#: |mean - camera centre|^2 is floored here before its inverse square root (a Gaussian at the camera centre)
+DIRECTION_FLOOR = 1e-30
+
+
 def view_directions(means, view: ViewParams) -> tuple:
-    """(``d = mean - camera centre``, ``d / |d|``): the SH colour's view direction, before and after normalization."""
+    """The SH colour's view direction and what it is made of: (``d = mean - camera centre``, ``|d|^2``, ``1 / |d|``
+    (``|d|^2`` floored at :data:`DIRECTION_FLOOR`), ``d / |d|``)."""
     d = means - view.center
-    return d, d * dr.rsqrt(fmax(dr.squared_norm(d), 1e-30))
+    n2 = dr.squared_norm(d)
+    rn = dr.rsqrt(fmax(n2, DIRECTION_FLOOR))
+    return d, n2, rn, d * rn
 
 
 def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig, tile_rows: int = TILE) -> Projected:
@@ -229,8 +236,8 @@ def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig, tile_rows: 
     mean2d = mi.Point2f(view.fx * tcam.x * inv_z + view.cx, view.fy * tcam.y * inv_z + view.cy)
 
     # Colour from SH (view direction from the camera centre to the mean)
-    color = mi.Color3f(eval_sh_colors(ga.sh_dc, ga.sh_rest, view_directions(means, view)[1], ga.sh_degree,
-                                      normalize=False))
+    dirs = view_directions(means, view)[3]
+    color = mi.Color3f(eval_sh_colors(ga.sh_dc, ga.sh_rest, dirs, ga.sh_degree, normalize=False))
 
     # ---- footprint, culling, tile rectangle (no gradients needed)
     with dr.suspend_grad():

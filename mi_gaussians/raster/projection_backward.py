@@ -36,7 +36,8 @@ from ..conventions import SH_C0
 from ..drjit_utils import fmax, row_vectors, sigmoid
 from ..model.gaussians import PARAMETER_NAMES, Gaussians
 from ..model.sh import eval_sh_colors, sh_basis, sh_dir_grad
-from .projection import GaussianArrays, Projected, ViewParams, covariance_2d, project, view_directions
+from .projection import (DIRECTION_FLOOR, GaussianArrays, Projected, ViewParams, covariance_2d, project,
+                         view_directions)
 
 
 class _Holder:
@@ -96,16 +97,14 @@ def projection_vjp(x: _Inputs, view: ViewParams, cfg: RasterConfig, g_mean2d, g_
     o = sigmoid(x.logit)                    # (its derivative e o^2, as AD takes it)
 
     # ---- colour: max(SH(dir) + 0.5, 0), dir = (p - centre) / |p - centre|
-    dvec, dirs = view_directions(p, view)
-    n2 = dr.squared_norm(dvec)
-    rn = dr.rsqrt(fmax(n2, 1e-30))
+    dvec, n2, rn, dirs = view_directions(p, view)
     basis = sh_basis(dirs, x.degree)
     c = eval_sh_colors(x.dc, x.rest, dirs, x.degree, normalize=False, clamp=False)
     gc = mi.Vector3f(*[dr.select(c[i] < 0, 0.0, g_color[i]) for i in range(3)])
     g_dc = SH_C0 * gc
     g_rest = [basis[i + 1] * gc for i in range(len(x.rest))]
     g_dir = sh_dir_grad(dirs, x.degree, [dr.dot(gc, r) for r in x.rest])
-    g_p = g_dir * rn - dr.select(n2 > 1e-30, rn * rn * rn * dr.dot(g_dir, dvec), 0.0) * dvec
+    g_p = g_dir * rn - dr.select(n2 > DIRECTION_FLOOR, rn * rn * rn * dr.dot(g_dir, dvec), 0.0) * dvec
 
     # ---- opacity and conic (a, b, c) = (cov_c, -cov_b, cov_a) / det
     g_inv_det = g_conic.x * cov_c - g_conic.y * cov_b + g_conic.z * cov_a
