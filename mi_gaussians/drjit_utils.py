@@ -115,10 +115,22 @@ def sigmoid(x):
     return dr.rcp(1.0 + dr.exp(-x))
 
 
+#: A quaternion whose squared norm is at most this counts as zero: its normalization divides by the floor instead
+#: (:func:`quaternion_to_matrix` gives the identity, its hand-written derivative a zero gradient).
+QUATERNION_FLOOR = 1e-24
+
+
+def quaternion_normalization(q: "mi.Vector4f") -> tuple:
+    """(squared norm, 1 / norm floored at :data:`QUATERNION_FLOOR`) of quaternions: the normalization of
+    :func:`quaternion_to_matrix`, for it and for its derivative."""
+    n2 = dr.squared_norm(q)
+    return n2, dr.rsqrt(fmax(n2, QUATERNION_FLOOR))
+
+
 def quaternion_to_matrix(q_wxyz: "mi.Vector4f") -> "mi.Matrix3f":
     """Rotation matrices of (w, x, y, z) quaternions of any norm (normalized here, like the reference's
     ``build_rotation``; a zero quaternion gives the identity). Differentiable."""
-    q = q_wxyz * dr.rsqrt(fmax(dr.squared_norm(q_wxyz), 1e-24))
+    q = q_wxyz * quaternion_normalization(q_wxyz)[1]
     w, x, y, z = q.x, q.y, q.z, q.w
     return mi.Matrix3f(
         1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),

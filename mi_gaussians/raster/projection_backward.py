@@ -33,7 +33,7 @@ import mitsuba as mi
 
 from ..config import RasterConfig
 from ..conventions import SH_C0
-from ..drjit_utils import fmax, row_vectors, sigmoid
+from ..drjit_utils import QUATERNION_FLOOR, quaternion_normalization, row_vectors, sigmoid
 from ..model.gaussians import PARAMETER_NAMES, Gaussians
 from ..model.sh import eval_sh_colors, sh_basis, sh_dir_grad
 from .projection import (DIRECTION_FLOOR, GaussianArrays, Projected, ViewParams, covariance_2d, project,
@@ -175,8 +175,7 @@ def _only(mask, v):
 def _quaternion_vjp(q, G) -> "mi.Vector4f":
     """The gradient of the (w, x, y, z) quaternion ``q`` (any norm) from ``G[i][k]``, that of entry (i, k) of
     :func:`~mi_gaussians.drjit_utils.quaternion_to_matrix` (which normalizes ``q`` first)."""
-    n2 = dr.squared_norm(q)
-    r = dr.rsqrt(fmax(n2, 1e-24))
+    n2, r = quaternion_normalization(q)
     w, x, y, z = q.x * r, q.y * r, q.z * r, q.w * r
     gw = 2.0 * (z * (G[1][0] - G[0][1]) + y * (G[0][2] - G[2][0]) + x * (G[2][1] - G[1][2]))
     gx = 2.0 * (y * (G[0][1] + G[1][0]) + z * (G[0][2] + G[2][0]) + w * (G[2][1] - G[1][2])
@@ -186,7 +185,7 @@ def _quaternion_vjp(q, G) -> "mi.Vector4f":
     gz = 2.0 * (x * (G[0][2] + G[2][0]) + y * (G[1][2] + G[2][1]) + w * (G[1][0] - G[0][1])
                 - 2.0 * z * (G[0][0] + G[1][1]))
     g = mi.Vector4f(gw, gx, gy, gz)
-    return g * r - dr.select(n2 > 1e-24, r * r * r * dr.dot(g, q), 0.0) * q
+    return g * r - dr.select(n2 > QUATERNION_FLOOR, r * r * r * dr.dot(g, q), 0.0) * q
 
 
 class ProjectOp(dr.CustomOp):
