@@ -8,6 +8,8 @@
 #                                        # shared datasets, quality and minutes (two calls: see "quality" below)
 #   bash benchmarks/gpu_check.sh layouts # the blend's lane layouts on a trained model, then the rasterizer against
 #                                        # gsplat (after "quality setup": see "layouts" below)
+#   bash benchmarks/gpu_check.sh issue53 # issue 53's GPU rows in ONE call sized for a 15-minute device budget: see
+#                                        # "issue53" below
 # Run from the project's root on the GPU machine. Here, first:
 #   bash ../shared/tools/gpu/prepare.sh --gsplat        # .gpu/: Mitsuba/Dr.Jit runtime (+ gsplat's wheel)
 #   mkdir -p .gpu/data/mi_objects && cp -r ../shared/data/mi_objects/colmap .gpu/data/mi_objects/
@@ -18,7 +20,7 @@
 # own time limit, so that a slow step cannot eat the others' results; logs and tables go to $OUT (default
 # /tmp/gpu_check) and the tables are repeated at the end.
 set -u
-part=${1:?usage: gpu_check.sh tests|peers|quality|layouts}
+part=${1:?usage: gpu_check.sh tests|peers|quality|layouts|issue53}
 OUT=${OUT:-/tmp/gpu_check}
 mkdir -p "$OUT"
 T0=$(date +%s)
@@ -125,6 +127,41 @@ if [ "$part" = layouts ]; then
         --cases 10000:256 100000:800 1000000:1600 > "$OUT/render.md" 2>&1
     say done
     for f in layouts render; do echo "== $f"; grep -E '^\| [0-9a-zA-Z]|rror' "$OUT/$f.md" | tail -n 20; done
+    exit 0
+fi
+
+if [ "$part" = issue53 ]; then
+    # Issue 53's GPU rows, all in one call (a session's device time is 15 minutes, the machine's start included):
+    # gsplat's recipe and ours on mi_objects/colmap, 7k of the 30k schedule, one after the other (minutes and scores
+    # from the same machine), then the rasterizers' forward + backward at 100k/800x800 and 1M/1600x1600.
+    # Here, first (about 45 MiB travels):
+    #   bash ../shared/tools/gpu/prepare.sh --gsplat        # .gpu/site.tar.xz, the gsplat wheel, bootstrap.sh
+    #   mkdir -p .gpu/data/mi_objects && cp -r ../shared/data/mi_objects/colmap .gpu/data/mi_objects/
+    # and run it as: run(command="bash benchmarks/gpu_check.sh issue53", timeout_s=600,
+    #   carry=[".gpu/site.tar.xz", ".gpu/gsplat-1.5.3-py3-none-any.whl", ".gpu/bootstrap.sh", ".gpu/data"])
+    # Each step has its own limit and the whole stops starting steps after DEADLINE_S (default 540 s), so that the
+    # call returns inside its 600 s with what it has: the training rows first (the must-show), then the kernels.
+    deadline=${DEADLINE_S:-540}
+    left() { echo $((deadline - ($(date +%s) - T0))); }
+    step() {   # step LIMIT_S NAME COMMAND...: run COMMAND if LIMIT_S still fits before the deadline
+        local limit=$1 name=$2; shift 2
+        if [ "$(left)" -lt "$limit" ]; then say "skipped $name: $(left) s left, it may take $limit"; return 1; fi
+        say "$name"; timeout -k 10 "$limit" "$@"; say "$name: exit $?"
+    }
+    data
+    [ -d .gpu/data/mi_objects/colmap ] || say "no .gpu/data/mi_objects/colmap: the training rows will be skipped"
+    step 240 "gsplat's CUDA build" python3 -c "from gsplat.cuda._backend import _C; print('gsplat built', _C is not None)" \
+        >> "$OUT/setup.log" 2>&1
+    step 110 "gsplat's recipe, mi_objects/colmap, 7k of the 30k schedule" python3 benchmarks/gsplat_train.py \
+        mi_objects_colmap --milestones 7000 --schedule 30000 > "$OUT/train_gsplat.md" 2>&1
+    step 150 "ours, mi_objects/colmap, 7k of the 30k schedule" python3 benchmarks/train.py mi_objects_colmap \
+        --milestones 7000 --schedule 30000 --variant "${VARIANT:-cuda_ad_rgb}" --out /tmp/ours > "$OUT/train_ours.md" 2>&1
+    step 100 "forward + backward against gsplat" python3 benchmarks/render.py --variant "${VARIANT:-cuda_ad_rgb}" --peers gsplat \
+        --repeats 7 --profile --cases 100000:800 1000000:1600 > "$OUT/render.md" 2>&1
+    say done
+    for f in train_gsplat train_ours render; do
+        echo "== $f"; grep -E '^\| [0-9a-zA-Z]|rror' "$OUT/$f.md" 2>/dev/null | tail -n 14
+    done
     exit 0
 fi
 
