@@ -115,8 +115,8 @@ def sigmoid(x):
     return dr.rcp(1.0 + dr.exp(-x))
 
 
-#: A quaternion whose squared norm is at most this counts as zero: its normalization divides by the floor instead
-#: (:func:`quaternion_to_matrix` gives the identity, its hand-written derivative a zero gradient).
+#: The floor of a quaternion's squared norm in its normalization, so that a zero quaternion gives the identity
+#: (:func:`quaternion_to_matrix`) and a zero gradient (the projection's hand-written derivative), not NaN.
 QUATERNION_FLOOR = 1e-24
 
 
