@@ -120,11 +120,23 @@ def sigmoid(x):
 QUATERNION_FLOOR = 1e-24
 
 
+def floored_normalization(v, floor: float) -> tuple:
+    """(``|v|^2``, ``1 / |v|`` with ``|v|^2`` floored at ``floor``) of vectors: ``v`` normalized is ``v`` times the
+    second; :func:`normalization_vjp` is its derivative."""
+    n2 = dr.squared_norm(v)
+    return n2, dr.rsqrt(fmax(n2, floor))
+
+
+def normalization_vjp(g, v, n2, r, floor: float):
+    """The gradient with respect to ``v`` of ``v * r`` (:func:`floored_normalization`'s ``n2``, ``r`` of ``v``) from
+    ``g``, that of the normalized vector; where ``|v|^2`` is at the floor, ``r`` is a constant: ``g r``."""
+    return g * r - dr.select(n2 > floor, r * r * r * dr.dot(g, v), 0.0) * v
+
+
 def quaternion_normalization(q: "mi.Vector4f") -> tuple:
-    """(squared norm, 1 / norm floored at :data:`QUATERNION_FLOOR`) of quaternions: the normalization of
+    """:func:`floored_normalization` of quaternions at :data:`QUATERNION_FLOOR`: the normalization of
     :func:`quaternion_to_matrix`, for it and for its derivative."""
-    n2 = dr.squared_norm(q)
-    return n2, dr.rsqrt(fmax(n2, QUATERNION_FLOOR))
+    return floored_normalization(q, QUATERNION_FLOOR)
 
 
 def quaternion_to_matrix(q_wxyz: "mi.Vector4f") -> "mi.Matrix3f":

@@ -35,7 +35,7 @@ import numpy as np
 
 from ..config import RasterConfig
 from ..data.camera import Camera
-from ..drjit_utils import fclamp, fmax, quaternion_to_matrix, row_vectors, sigmoid
+from ..drjit_utils import fclamp, floored_normalization, fmax, quaternion_to_matrix, row_vectors, sigmoid
 from ..model.gaussians import Gaussians
 from ..model.sh import eval_sh_colors, gather_sh_coeffs
 from .blend import TILE
@@ -216,8 +216,7 @@ def view_directions(means, view: ViewParams) -> tuple:
     """The SH colour's view direction and what it is made of: (``d = mean - camera centre``, ``|d|^2``, ``1 / |d|``
     (``|d|^2`` floored at :data:`DIRECTION_FLOOR`), ``d / |d|``)."""
     d = means - view.center
-    n2 = dr.squared_norm(d)
-    rn = dr.rsqrt(fmax(n2, DIRECTION_FLOOR))
+    n2, rn = floored_normalization(d, DIRECTION_FLOOR)
     return d, n2, rn, d * rn
 
 

@@ -33,7 +33,7 @@ import mitsuba as mi
 
 from ..config import RasterConfig
 from ..conventions import SH_C0
-from ..drjit_utils import QUATERNION_FLOOR, quaternion_normalization, row_vectors, sigmoid
+from ..drjit_utils import QUATERNION_FLOOR, normalization_vjp, quaternion_normalization, row_vectors, sigmoid
 from ..model.gaussians import PARAMETER_NAMES, Gaussians
 from ..model.sh import eval_sh_colors, sh_basis, sh_dir_grad
 from .projection import (DIRECTION_FLOOR, GaussianArrays, Projected, ViewParams, covariance_2d, project,
@@ -104,7 +104,7 @@ def projection_vjp(x: _Inputs, view: ViewParams, cfg: RasterConfig, g_mean2d, g_
     g_dc = SH_C0 * gc
     g_rest = [basis[i + 1] * gc for i in range(len(x.rest))]
     g_dir = sh_dir_grad(dirs, x.degree, [dr.dot(gc, r) for r in x.rest])
-    g_p = g_dir * rn - dr.select(n2 > DIRECTION_FLOOR, rn * rn * rn * dr.dot(g_dir, dvec), 0.0) * dvec
+    g_p = normalization_vjp(g_dir, dvec, n2, rn, DIRECTION_FLOOR)
 
     # ---- opacity and conic (a, b, c) = (cov_c, -cov_b, cov_a) / det
     g_inv_det = g_conic.x * cov_c - g_conic.y * cov_b + g_conic.z * cov_a
@@ -185,7 +185,7 @@ def _quaternion_vjp(q, G) -> "mi.Vector4f":
     gz = 2.0 * (x * (G[0][2] + G[2][0]) + y * (G[1][2] + G[2][1]) + w * (G[1][0] - G[0][1])
                 - 2.0 * z * (G[0][0] + G[1][1]))
     g = mi.Vector4f(gw, gx, gy, gz)
-    return g * r - dr.select(n2 > QUATERNION_FLOOR, r * r * r * dr.dot(g, q), 0.0) * q
+    return normalization_vjp(g, q, n2, r, QUATERNION_FLOOR)
 
 
 class ProjectOp(dr.CustomOp):
