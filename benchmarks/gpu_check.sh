@@ -143,21 +143,23 @@ if [ "$part" = issue53 ]; then
     # call returns inside its 600 s with what it has: the training rows first (the must-show), then the kernels.
     deadline=${DEADLINE_S:-540}
     left() { echo $((deadline - ($(date +%s) - T0))); }
-    step() {   # step LIMIT_S NAME COMMAND...: run COMMAND if LIMIT_S still fits before the deadline
-        local limit=$1 name=$2; shift 2
+    step() {   # step LIMIT_S NAME LOG COMMAND...: run COMMAND (its output to LOG, appended) if LIMIT_S still fits
+        local limit=$1 name=$2 log=$3; shift 3   # before the deadline; what became of it goes to the console
         if [ "$(left)" -lt "$limit" ]; then say "skipped $name: $(left) s left, it may take $limit"; return 1; fi
-        say "$name"; timeout -k 10 "$limit" "$@"; say "$name: exit $?"
+        say "$name"; timeout -k 10 "$limit" "$@" >> "$log" 2>&1; say "$name: exit $?"
     }
     data
     [ -d .gpu/data/mi_objects/colmap ] || say "no .gpu/data/mi_objects/colmap: the training rows will be skipped"
-    step 240 "gsplat's CUDA build" python3 -c "from gsplat.cuda._backend import _C; print('gsplat built', _C is not None)" \
-        >> "$OUT/setup.log" 2>&1
-    step 110 "gsplat's recipe, mi_objects/colmap, 7k of the 30k schedule" python3 benchmarks/gsplat_train.py \
-        mi_objects_colmap --milestones 7000 --schedule 30000 > "$OUT/train_gsplat.md" 2>&1
-    step 150 "ours, mi_objects/colmap, 7k of the 30k schedule" python3 benchmarks/train.py mi_objects_colmap \
-        --milestones 7000 --schedule 30000 --variant "${VARIANT:-cuda_ad_rgb}" --out /tmp/ours > "$OUT/train_ours.md" 2>&1
-    step 100 "forward + backward against gsplat" python3 benchmarks/render.py --variant "${VARIANT:-cuda_ad_rgb}" --peers gsplat \
-        --repeats 7 --profile --cases 100000:800 1000000:1600 > "$OUT/render.md" 2>&1
+    step 240 "gsplat's CUDA build" "$OUT/setup.log" \
+        python3 -c "from gsplat.cuda._backend import _C; print('gsplat built', _C is not None)"
+    step 110 "gsplat's recipe, mi_objects/colmap, 7k of the 30k schedule" "$OUT/train_gsplat.md" \
+        python3 benchmarks/gsplat_train.py mi_objects_colmap --milestones 7000 --schedule 30000
+    step 150 "ours, mi_objects/colmap, 7k of the 30k schedule" "$OUT/train_ours.md" \
+        python3 benchmarks/train.py mi_objects_colmap --milestones 7000 --schedule 30000 --variant "${VARIANT:-cuda_ad_rgb}" \
+        --out /tmp/ours
+    step 100 "forward + backward against gsplat" "$OUT/render.md" \
+        python3 benchmarks/render.py --variant "${VARIANT:-cuda_ad_rgb}" --peers gsplat --repeats 7 --profile \
+        --cases 100000:800 1000000:1600
     say done
     for f in train_gsplat train_ours render; do
         echo "== $f"; grep -E '^\| [0-9a-zA-Z]|rror' "$OUT/$f.md" 2>/dev/null | tail -n 14
