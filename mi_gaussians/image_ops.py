@@ -50,6 +50,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from .drjit_utils import flat_mean
 from .image_walk import _identity, _opaque, _Planes, _store, _sweep
 
 @dataclass(frozen=True)
@@ -341,7 +342,7 @@ def l1(img: "mi.TensorXf", ref: "mi.TensorXf") -> "mi.Float":
     sign(img - ref) / N with sign(0) = 0 (as torch's ``abs``); Dr.Jit's own ``abs`` would give 1."""
     x, y, _ = _pair(img, ref)
     d = x - y
-    return dr.mean(d * dr.detach(_sign(d)))
+    return flat_mean(d * dr.detach(_sign(d)))
 
 
 def ssim(img: "mi.TensorXf", ref: "mi.TensorXf", params: SSIMParams = REFERENCE_SSIM) -> "mi.Float":

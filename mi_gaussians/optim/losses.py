@@ -10,6 +10,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..config import SSIM_PADDINGS
+from ..drjit_utils import flat_mean
 from ..image_ops import REFERENCE_SSIM, l1, ssim_map, weighted_l1_ssim
 
 
@@ -72,7 +73,7 @@ def depth_loss(depth: "mi.TensorXf", alpha: "mi.TensorXf", inv_target: "mi.Tenso
     d, r = depth.array, inv_target.array
     valid = (r > 0.0) & (dr.detach(alpha.array) > 0.5) & (dr.detach(d) > 0.0)
     inv = dr.rcp(dr.select(valid, d, 1.0))
-    return dr.mean(dr.select(valid, dr.abs(inv - r), 0.0))
+    return flat_mean(dr.select(valid, dr.abs(inv - r), 0.0))
 
 
 def alpha_loss(alpha: "mi.TensorXf", transparency: "mi.TensorXf") -> "mi.Float":

@@ -46,7 +46,7 @@ from scipy.special import comb
 from ..config import MCMCConfig, check_section
 from ..conventions import logit
 from ..conventions import sigmoid as sigmoid_np
-from ..drjit_utils import quaternion_to_matrix, sigmoid
+from ..drjit_utils import flat_mean, quaternion_to_matrix, sigmoid
 from .adam import GaussianAdam
 from .strategy import StepInfo, Strategy
 
@@ -133,9 +133,9 @@ class MCMCStrategy(Strategy):
         c = self.cfg
         terms = []
         if c.opacity_reg:
-            terms.append(float(c.opacity_reg) * dr.mean(sigmoid(params["opacities"].array)))
+            terms.append(float(c.opacity_reg) * flat_mean(sigmoid(params["opacities"].array)))
         if c.scale_reg:
-            terms.append(float(c.scale_reg) * dr.mean(dr.exp(params["scales"].array)))
+            terms.append(float(c.scale_reg) * flat_mean(dr.exp(params["scales"].array)))
         if not terms:
             return None
         return terms[0] if len(terms) == 1 else terms[0] + terms[1]
