@@ -7,6 +7,7 @@ percent between processes and minutes; taking turns gives every layout the same 
     python benchmarks/layouts.py RUN                                    # the same from the run folder alone
     python benchmarks/layouts.py RUN 100000:800 1000000:1600 --variant cuda_ad_rgb --layouts 4:64 2:128 1:256
     python benchmarks/layouts.py RUN --layouts 8:16 4:16:4 --every-kernel   # tile grids: binning's kernels count too
+    python benchmarks/layouts.py RUN --layouts 8:16:8:16 8:8:8:8 --every-kernel --scale 2   # its views at 2x the size
 
 ``RUN`` is a run folder (its ``point_cloud.ply``), ``DATASET`` the dataset folder it was trained on (read at full
 resolution, white background). A run folder alone takes 4 of the training cameras its ``cameras.json`` lists and the
@@ -26,7 +27,15 @@ import numpy as np
 NAMES = ("means", "scales", "rotations", "opacities", "sh_dc", "sh_rest")
 
 
-def cases(specs):
+def scaled(cam, s: int):
+    """``cam`` rendering ``s`` times as many pixels along each side (the same view)."""
+    import dataclasses
+
+    return cam if s == 1 else dataclasses.replace(cam, width=cam.width * s, height=cam.height * s, fx=cam.fx * s,
+                                                  fy=cam.fy * s, cx=cam.cx * s, cy=cam.cy * s)
+
+
+def cases(specs, scale: int = 1):
     import mi_gaussians as mig
     from mi_gaussians.data.dataset import load_dataset
     from mi_gaussians.run_folder import CAMERAS, MODEL, RunRecord
@@ -38,13 +47,14 @@ def cases(specs):
             g = mig.Gaussians.load_ply(Path(run) / "point_cloud.ply")
             ds = load_dataset(data, resolution=1, background=(1, 1, 1))
             views = ds.train[::max(1, len(ds.train) // 4)][:4]
-            yield f"{Path(run).name} ({g.n:,} Gaussians, {views[0].camera.width}x{views[0].camera.height})", g, \
-                [v.camera for v in views], (1.0, 1.0, 1.0)
+            cams = [scaled(v.camera, scale) for v in views]
+            yield f"{Path(run).name} ({g.n:,} Gaussians, {cams[0].width}x{cams[0].height})", g, cams, (1.0, 1.0, 1.0)
         elif ":" not in spec:
             run = Path(spec)
             g = mig.Gaussians.load_ply(run / MODEL)
             train = json.loads((run / CAMERAS).read_text())["train"]
-            cams = [mig.Camera.from_dict(c, str(run / CAMERAS)) for c in train[::max(1, len(train) // 4)][:4]]
+            cams = [scaled(mig.Camera.from_dict(c, str(run / CAMERAS)), scale)
+                    for c in train[::max(1, len(train) // 4)][:4]]
             bg = tuple(RunRecord.read(run, "a run folder holds its config.json").train.data.background)
             yield f"{run.name} ({g.n:,} Gaussians, {cams[0].width}x{cams[0].height})", g, cams, bg
         else:
@@ -87,8 +97,10 @@ def main(argv=None) -> int:
     ap.add_argument("cases", nargs="+", metavar="N:RES | RUN@DATASET | RUN")
     ap.add_argument("--repeats", type=int, default=5, help="timed turns per layout (after one untimed turn)")
     ap.add_argument("--variant", default="llvm_ad_rgb")
-    ap.add_argument("--layouts", nargs="+", default=["4:64", "8:16", "16:16"], metavar="PIXELS:START_LANES[:TILE_ROWS]",
-                    help="lane layouts (tile rows: 16 unless given)")
+    ap.add_argument("--layouts", nargs="+", default=["4:64", "8:16", "16:16"],
+                    metavar="PIXELS:START_LANES[:TILE_ROWS[:TILE_COLS]]",
+                    help="lane layouts (tile rows and columns: 16 unless given)")
+    ap.add_argument("--scale", type=int, default=1, help="render a run's views at this many times their size")
     ap.add_argument("--every-kernel", action="store_true",
                     help="time every kernel of the render and its backward pass, not only the blend loops")
     args = ap.parse_args(argv)
@@ -103,11 +115,11 @@ def main(argv=None) -> int:
     layouts = {s: blend.LaneLayout(*map(int, s.split(":"))) for s in args.layouts}
     print(f"variant {args.variant}, {dr.thread_count()} threads; the active backend's default: "
           f"{blend.lane_layout()}")
-    print("| case | pixels per lane : start lanes [: tile rows] | forward ms (median / best) "
+    print("| case | pixels per lane : start lanes [: tile rows [: tile columns]] | forward ms (median / best) "
           "| backward ms (median / best) | fwd+bwd median |\n|---|---|---:|---:|---:|")
     default = blend.lane_layout
     try:
-        for label, g, cams, bg in cases(args.cases):
+        for label, g, cams, bg in cases(args.cases, args.scale):
             times = {s: ([], []) for s in layouts}
             for turn in range(args.repeats + 1):
                 for s, layout in layouts.items():

@@ -1,5 +1,6 @@
 """Generic Dr.Jit helpers that every layer needs: NumPy <-> Dr.Jit copies, float min/max/clamp, a mean that a frozen
-function computes as the traced code does (:func:`flat_mean`), the logistic function, quaternion rotation matrices and the rows of a table of vectors (:func:`row_vectors`).
+function computes as the traced code does (:func:`flat_mean`), the logistic function, quaternion rotation matrices
+and the rows of a table of vectors (:func:`row_vectors`).
 
 Float min/max/clamp are written with ``dr.select``: ``dr.minimum/maximum/clip`` on floats abort the process when
 Dr.Jit JIT-compiles with libLLVM 15 (see ``drjit-notes.md``). The package selects a newer libLLVM at start-up, but a

@@ -10,7 +10,7 @@ and streamed as images; viser's client supplies the orbit / fly camera and the c
 Frames: while the camera moves, the longest image side is ``moving_size`` (interactive with a million Gaussians on
 the CPU); ``idle_seconds`` after the last move the view is rendered again at ``max_size``. Render modes: RGB, alpha,
 expected depth (turbo colour map between the 2nd and 98th percentiles of the visible depths) and the number of
-Gaussians binned in each tile (log scale; tiles of 16x8 pixels on the CPU, 16x16 on CUDA): the rasterizer's work,
+Gaussians binned in each tile (log scale; tiles of 8x8 pixels on the CPU, 16x16 on CUDA): the rasterizer's work,
 where it goes.
 
 Panel: render mode, SH degree, background colour, frame sizes, and a camera list (the training and test cameras of
@@ -207,24 +207,24 @@ def render_image(g, cam: Camera, mode: str = "RGB", sh_degree: int | None = None
 
 def _tile_heat_map(g, cam: Camera, sh_degree, raster: RasterConfig) -> np.ndarray:
     from .raster.binning import bin_gaussians
-    from .raster.blend import TILE, lane_layout
+    from .raster.blend import lane_layout
     from .raster.projection import GaussianArrays, ViewParams, project
 
     W, H = cam.width, cam.height
     layout = lane_layout()
-    rows = layout.tile_rows
+    cols, rows = layout.tile
     tx, ty = layout.tiles(W, H)
     counts = np.zeros(tx * ty)
     if g.n:
         view = ViewParams.from_camera(cam)
         proj = project(GaussianArrays.from_gaussians(g, g.sh_degree if sh_degree is None else sh_degree), view, raster,
-                       rows)
+                       layout.tile)
         bins = bin_gaussians(proj.depth, proj.rect, proj.tile_count, tx, ty, ellipse=proj.ellipse,
                              image_size=(view.width_f, view.height_f))
         counts = np.diff(np.array(bins.tile_start, np.int64)).astype(np.float64)
     tiles = np.log1p(counts.reshape(ty, tx)) / max(np.log1p(counts.max()), 1e-12)
-    img = _turbo(np.repeat(np.repeat(tiles, rows, axis=0), TILE, axis=1)[:H, :W])
-    img[np.repeat(np.repeat(counts.reshape(ty, tx) == 0, rows, axis=0), TILE, axis=1)[:H, :W]] = 0.0
+    img = _turbo(np.repeat(np.repeat(tiles, rows, axis=0), cols, axis=1)[:H, :W])
+    img[np.repeat(np.repeat(counts.reshape(ty, tx) == 0, rows, axis=0), cols, axis=1)[:H, :W]] = 0.0
     return (img * 255.0 + 0.5).astype(np.uint8)
 
 

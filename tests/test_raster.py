@@ -330,7 +330,10 @@ LAYOUTS = {**LANE_LAYOUTS, "one_pixel": LaneLayout(pixels=1, start_lanes=256),
            "square_tiles": LaneLayout(pixels=8, start_lanes=16, tile_rows=16),
            "eight_rows": LaneLayout(pixels=8, start_lanes=16, tile_rows=8),
            "four_rows": LaneLayout(pixels=4, start_lanes=16, tile_rows=4),
-           "one_row": LaneLayout(pixels=1, start_lanes=4, tile_rows=1)}
+           "one_row": LaneLayout(pixels=1, start_lanes=4, tile_rows=1),
+           "eight_by_eight_four_pixels": LaneLayout(pixels=4, start_lanes=16, tile_rows=8, tile_cols=8),
+           "four_columns": LaneLayout(pixels=8, start_lanes=4, tile_rows=8, tile_cols=4),
+           "one_column": LaneLayout(pixels=2, start_lanes=2, tile_rows=4, tile_cols=1)}
 
 
 @pytest.fixture(params=sorted(LAYOUTS))
@@ -384,7 +387,13 @@ def test_lane_layout_rejects_what_the_kernels_cannot_map():
         LaneLayout(pixels=4, start_lanes=16, tile_rows=12)
     with pytest.raises(ValueError, match="pixels = 8"):
         LaneLayout(pixels=8, start_lanes=16, tile_rows=4)    # a lane's pixels lie in one tile column
+    with pytest.raises(ValueError, match="tile_cols = 12"):
+        LaneLayout(pixels=4, start_lanes=16, tile_rows=8, tile_cols=12)
+    with pytest.raises(ValueError, match="start_lanes = 16"):
+        LaneLayout(pixels=8, start_lanes=16, tile_rows=8, tile_cols=8)   # an 8 x 8 tile has 8 lanes of 8 pixels
     assert LaneLayout(pixels=4, start_lanes=16, tile_rows=4).tiles(53, 37) == (4, 10)
+    assert LaneLayout(pixels=8, start_lanes=8, tile_rows=8, tile_cols=8).tiles(53, 37) == (7, 5)
+    assert LaneLayout(pixels=8, start_lanes=8, tile_rows=8, tile_cols=8).tile == (8, 8)
 
 
 @pytest.mark.parametrize("footprint", ["box", "ellipse"])

@@ -267,7 +267,7 @@ def test_size_classes_train_the_unpadded_model_with_fewer_recordings(scene, one_
     that frozen steps at its own size (``row_classes=0``, the default) train, bit for bit, through densifications that
     change the number of Gaussians (within a class and across classes); the padded run records once per class and
     capacity, the other once per size. (Two classes per doubling: with four, on this small model, the instance
-    capacities' own changes on the CPU's 16 x 8 tiles left the two runs with as many recordings.)"""
+    capacities' own changes on the CPU's tiles left the two runs with as many recordings.)"""
     from mi_gaussians.optim.train_step import row_class
 
     cfg = small_config(200)

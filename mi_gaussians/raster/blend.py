@@ -13,13 +13,13 @@ alpha_min (a bound on the exponent per instance, :func:`_pack_geometry`): on tra
 pixel evaluations are hits (docs/benchmarks/work_per_step.md).
 
 Layout for speed on SIMD CPUs (and coherent on GPUs): one lane handles a column of ``LaneLayout.pixels`` pixels of a
-tile of 16 columns (the binning's tile grid: 16 x 8 pixels, 8 per lane, on the LLVM backend; 16 x 16, 4 per lane, on
-CUDA: ``LANE_LAYOUTS``), so the lanes of a tile are contiguous and a SIMD packet of lanes reads the same instance in
+tile (the binning's tile grid: 8 x 8 pixels, 8 per lane, two tiles to a 16-lane SIMD packet, on the LLVM backend;
+16 x 16, 4 per lane, on CUDA: ``LANE_LAYOUTS``), so the lanes of a tile are contiguous and read the same instance in
 lock-step; the features are packed per instance (8 + 4 floats of the instance's Gaussian, in the order of the
 tiles' lists: a tile's walk reads consecutive records, not the Gaussians' scattered ones through the list) and read
 with packet gathers; the backward loop of every
-group of ``LaneLayout.start_lanes`` lanes (16 on the CPU: an AVX-512 packet, two AVX2 ones; the whole tile on CUDA)
-starts at the group's largest last-contributor index, so a packet's lanes touch the same Gaussian together, and
+group of ``LaneLayout.start_lanes`` lanes (a whole tile: 8 on the CPU, 64 on CUDA) starts at the group's largest
+last-contributor index, so a tile's lanes touch the same Gaussian together, and
 gradients are accumulated with packet ``scatter_add`` in Dr.Jit's ``Expand`` mode (no atomics
 on CPU). The layout changes only the speed: images are identical (for finite inputs), gradients equal up to the order
 of float sums.
@@ -46,22 +46,25 @@ COL = 4      # packed colour per Gaussian and per instance: r, g, b, (pad)
 
 @dataclass(frozen=True)
 class LaneLayout:
-    """How the blend kernels map pixels to lanes and the image to tiles: tiles of ``TILE`` (16) columns by
-    ``tile_rows`` rows (a power of two up to 16: the grid the Gaussians are binned into, so that a tile's list holds
+    """How the blend kernels map pixels to lanes and the image to tiles: tiles of ``tile_cols`` columns by
+    ``tile_rows`` rows (powers of two up to 16: the grid the Gaussians are binned into, so that a tile's list holds
     only the Gaussians that reach its pixels), ``pixels`` consecutive pixels of one tile column per lane (a power of
     two dividing ``tile_rows``; more pixels share a lane's gathers and its one gradient scatter per Gaussian, at the
-    price of registers), and the backward pass's lanes starting together in groups of ``start_lanes`` (a power of two
-    dividing the lanes of a tile; a SIMD packet's worth or more keeps a packet's lanes on the same instance). The
-    layout changes the speed, not the result: the footprint that bins a Gaussian does not depend on the tile grid
-    (:mod:`.footprint`)."""
+    price of registers; a tile's lanes take its columns first, then its bands of ``pixels`` rows), and the backward
+    pass's lanes starting together in groups of ``start_lanes`` (a power of two dividing the lanes of a tile; a SIMD
+    packet's worth or more keeps a packet's lanes on the same instance). The layout changes the speed, not the
+    result: the footprint that bins a Gaussian does not depend on the tile grid (:mod:`.footprint`)."""
     pixels: int
     start_lanes: int
     tile_rows: int = TILE
+    tile_cols: int = TILE
 
     def __post_init__(self):
         powers = {1, 2, 4, 8, 16, 32, 64, 128, 256}
         if self.tile_rows not in powers or TILE % self.tile_rows:
             raise ValueError(f"LaneLayout: tile_rows = {self.tile_rows}, expected a power of two dividing {TILE}")
+        if self.tile_cols not in powers or TILE % self.tile_cols:
+            raise ValueError(f"LaneLayout: tile_cols = {self.tile_cols}, expected a power of two dividing {TILE}")
         if self.pixels not in powers or self.tile_rows % self.pixels:
             raise ValueError(f"LaneLayout: pixels = {self.pixels}, expected a power of two dividing the tile's "
                              f"{self.tile_rows} rows")
@@ -71,30 +74,35 @@ class LaneLayout:
 
     @property
     def lanes_per_tile(self) -> int:
-        return TILE * self.tile_rows // self.pixels
+        return self.tile_cols * self.tile_rows // self.pixels
+
+    @property
+    def tile(self) -> tuple[int, int]:
+        """A tile's (columns, rows) of pixels: the grid the projection's footprints bin into."""
+        return self.tile_cols, self.tile_rows
 
     def tiles(self, width: int, height: int) -> tuple[int, int]:
         """(tiles_x, tiles_y): the tile grid of a ``width`` x ``height`` image."""
-        return (width + TILE - 1) // TILE, (height + self.tile_rows - 1) // self.tile_rows
+        return (width + self.tile_cols - 1) // self.tile_cols, (height + self.tile_rows - 1) // self.tile_rows
 
     @property
     def tile_shift(self) -> int:
         return self.lanes_per_tile.bit_length() - 1
 
 
-# Per backend, measured (benchmarks/layouts.py, docs/benchmarks/speed.md's "Lane layout" table; a 2-core AVX-512 VM, 16-lane
-# packets; AVX2's 8-lane packets with half the registers are not measured): on the CPU the blend loops' fwd+bwd
-# medians are 1.05-1.57x faster with 8 pixels / 16 lanes than with 4 / the tile on trained and synthetic models;
-# 16 pixels wins on synthetic scenes and loses on mi_room (register spills). On 16 x 16 tiles a packet of 16 lanes
-# walked the whole tile's list for its half of the tile; on tiles of 16 x 8 pixels (one packet) it walks only the
-# Gaussians that reach its pixels. Projection, binning and blend forward + backward, every kernel (benchmarks/
-# layouts.py --every-kernel): 0.79-0.84x the time of 16 x 16 tiles on three trained models (200x200 and 400x400,
-# 40-63k Gaussians) and 0.87x on 100k synthetic Gaussians at 800x800, the same at 500k / 800x800, 1.13x on 1M at
-# 1600x1600 (Gaussians about 36 pixels wide: the instances nearly double and their binning costs more than the blend
-# saves). 16 x 4 tiles were faster still on the trained models (0.76-0.79x) and slower on the large synthetic scenes
-# (1.10x, 1.35x). docs/benchmarks/speed.md. CUDA keeps the layout measured on the H100 (a warp of 32 lanes: 4
-# pixels, the 16 x 16 tile's 64 lanes starting together).
-LANE_LAYOUTS = {"llvm": LaneLayout(pixels=8, start_lanes=16, tile_rows=8),
+# Per backend, measured (benchmarks/layouts.py, docs/benchmarks/speed.md's "Lane layout" and "Tile grid on the CPU"
+# tables; a 2-core AVX-512 VM, 16-lane packets; AVX2's 8-lane packets with half the registers are not measured): on
+# the CPU a lane blends 8 pixels of a tile column (1.05-1.57x faster than 4 on trained and synthetic models; 16
+# pixels spill registers on mi_room). Trained models' Gaussians are a few pixels wide and reach about 2 tiles of
+# 16 x 8 pixels, so most of a tile's (pixel, Gaussian) evaluations miss: on tiles of 8 x 8 pixels (8 lanes each, two
+# tiles side by side in a 16-lane packet, each half walking its own tile's list) projection, binning and blend
+# forward + backward take 0.88-0.92x the time of 16 x 8 tiles on seven trained models (100x100 to 400x400, 42k-138k
+# Gaussians), 0.92-0.94x on them rendered at twice their size, 0.98-1.02x at four times, 0.92x on 100k synthetic
+# Gaussians at 800x800, 1.09x on 500k and 1.29x on 1M at 1600x1600 (Gaussians about 36 pixels wide: the instances
+# grow more than the blend shrinks). 4 x 8 tiles gain more on the trained models and lose 7-12 % at four times their
+# size. CUDA keeps the layout measured on the H100 (a warp of 32 lanes: 4 pixels, the 16 x 16 tile's 64 lanes
+# starting together).
+LANE_LAYOUTS = {"llvm": LaneLayout(pixels=8, start_lanes=8, tile_rows=8, tile_cols=8),
                 "cuda": LaneLayout(pixels=4, start_lanes=64)}
 
 
@@ -201,8 +209,8 @@ def _lane_pixels(frame: Frame, n_lanes: int):
     tile_f = mi.Float(tile)
     ty = dr.floor((tile_f + 0.5) / frame.tiles_x_f)
     tx = tile_f - ty * frame.tiles_x_f
-    x = tx * TILE + mi.Float(local & 15)
-    y0 = ty * layout.tile_rows + mi.Float(local >> 4) * P
+    x = tx * layout.tile_cols + mi.Float(local & (layout.tile_cols - 1))
+    y0 = ty * layout.tile_rows + mi.Float(local >> (layout.tile_cols.bit_length() - 1)) * P
     px = x + 0.5
     pys = [y0 + (k + 0.5) for k in range(P)]
     x_ok = x < frame.width_f

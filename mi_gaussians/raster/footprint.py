@@ -8,8 +8,10 @@ exactly inside the ellipse ``d^T S^-1 d <= k``, ``k = 2 ln(o / alpha_min)``; the
 that rectangle whose pixel centres the ellipse's region reaches (:meth:`Ellipse.touches`), the exact
 ellipse-rectangle test of AccuTile / Speedy-Splat: a diagonal, elongated Gaussian spans a box of many tiles that it
 mostly misses, which the reference's 3-sigma square (and our opacity-aware box) blend for nothing. The rendered
-image and every gradient are bit for bit those of the box rule (only instances whose alpha is below ``alpha_min`` at
-every pixel of their tile are left out, and the blend skips those); only the work changes.
+image is bit for bit that of the box rule (only instances whose alpha is below ``alpha_min`` at every pixel of their
+tile are left out, and the blend skips those), and so is every gradient where a SIMD packet blends one tile; where it
+blends two (the CPU's 8 x 8 tiles) their walks pair up differently when the lists differ, and a Gaussian's
+gradient may sum its two tiles' shares in the other order (equal up to float rounding). Only the work changes.
 
 The test, per (Gaussian, tile): the ellipse's region between two rows is convex, so its x-range over the tile's band of
 pixel-centre rows ``[y0, y1]`` is ``[min x_l(y), max x_r(y)]`` with ``x_{l,r}(y) = m_x + (b / c) dy -/+ sqrt((k -
@@ -51,7 +53,7 @@ class Ellipse:
     k: "mi.Float"             # the threshold k, enlarged by the relative margin
     ext_y: "mi.Float"         # sqrt(k c): the y half-extent
     dy_r: "mi.Float"          # dy of the rightmost point, b sqrt(k / a)
-    tile_rows: int = TILE     # the tile grid's rows per tile (its columns: TILE)
+    tile: tuple = (TILE, TILE)   # the tile grid's (columns, rows) per tile
 
     def touches(self, g: "mi.UInt32", tx: "mi.Int32", ty: "mi.Int32", width_f: "mi.Float",
                 height_f: "mi.Float") -> "mi.Bool":
@@ -62,7 +64,7 @@ class Ellipse:
 
         mx, my, slope, half2, inv_c = get(self.mx), get(self.my), get(self.slope), get(self.half2), get(self.inv_c)
         k, ext_y, dy_r = get(self.k), get(self.ext_y), get(self.dy_r)
-        ts, rows = float(TILE), float(self.tile_rows)
+        ts, rows = float(self.tile[0]), float(self.tile[1])
         y0 = mi.Float(ty) * rows + 0.5
         y1 = fmin(mi.Float(ty) * rows + (rows - 1.0), height_f - 1.0) + 0.5
         x0 = mi.Float(tx) * ts + 0.5
@@ -77,9 +79,9 @@ class Ellipse:
 
 
 def box(m: "mi.Point2f", a: "mi.Float", b: "mi.Float", c: "mi.Float", det: "mi.Float", k: "mi.Float",
-        valid: "mi.Bool", width_f: "mi.Float", height_f: "mi.Float", ellipse: bool, tile_rows: int = TILE):
-    """The tile rectangle (tx0, ty0, tx1, ty1) (inclusive, ``mi.Int32``; tiles of ``TILE`` columns by ``tile_rows``
-    rows) of the ellipse ``d^T S^-1 d <= k`` (detached inputs), its tile count (0 where not ``valid`` or off screen)
+        valid: "mi.Bool", width_f: "mi.Float", height_f: "mi.Float", ellipse: bool, tile: tuple = (TILE, TILE)):
+    """The tile rectangle (tx0, ty0, tx1, ty1) (inclusive, ``mi.Int32``; tiles of ``tile`` = (columns, rows)
+    pixels) of the ellipse ``d^T S^-1 d <= k`` (detached inputs), its tile count (0 where not ``valid`` or off screen)
     and, with ``ellipse``, the :class:`Ellipse` whose test drops the rectangle's tiles it misses (``None``
     otherwise)."""
     ex = dr.sqrt(fmax(k * a, 0.0)) * (1 + REL_MARGIN) + ABS_MARGIN
@@ -91,11 +93,11 @@ def box(m: "mi.Point2f", a: "mi.Float", b: "mi.Float", c: "mi.Float", det: "mi.F
     j0 = dr.ceil(m.y - ey - 0.5)
     j1 = dr.floor(m.y + ey - 0.5)
     valid &= (i1 >= 0) & (i0 <= width_f - 1) & (j1 >= 0) & (j0 <= height_f - 1) & (i0 <= i1) & (j0 <= j1)
-    ts = float(TILE)
+    ts, rows = float(tile[0]), float(tile[1])
     tx0 = mi.Int32(dr.floor(fmax(i0, 0.0) / ts))
     tx1 = mi.Int32(dr.floor(fmin(i1, width_f - 1) / ts))
-    ty0 = mi.Int32(dr.floor(fmax(j0, 0.0) / float(tile_rows)))
-    ty1 = mi.Int32(dr.floor(fmin(j1, height_f - 1) / float(tile_rows)))
+    ty0 = mi.Int32(dr.floor(fmax(j0, 0.0) / rows))
+    ty1 = mi.Int32(dr.floor(fmin(j1, height_f - 1) / rows))
     count = dr.select(valid, mi.UInt32((tx1 - tx0 + 1) * (ty1 - ty0 + 1)), 0)
     shape = None
     if ellipse:
@@ -104,5 +106,5 @@ def box(m: "mi.Point2f", a: "mi.Float", b: "mi.Float", c: "mi.Float", det: "mi.F
         ke = fmax(k, 0.0) * (1 + REL_MARGIN + CONDITION_MARGIN * a_ * c_ / fmax(det, 1e-30)) ** 2
         inv_c = dr.rcp(c_)
         shape = Ellipse(mx=m.x, my=m.y, slope=b * inv_c, half2=fmax(det, 0.0) * inv_c, inv_c=inv_c, k=ke,
-                        ext_y=dr.sqrt(ke * c_), dy_r=b * dr.sqrt(ke / a_), tile_rows=tile_rows)
+                        ext_y=dr.sqrt(ke * c_), dy_r=b * dr.sqrt(ke / a_), tile=tile)
     return (tx0, ty0, tx1, ty1), count, valid, shape

@@ -220,9 +220,9 @@ def view_directions(means, view: ViewParams) -> tuple:
     return d, n2, rn, d * rn
 
 
-def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig, tile_rows: int = TILE) -> Projected:
-    """Project activated Gaussians for a view; the tile rectangles are those of a grid of ``TILE`` columns by
-    ``tile_rows`` rows per tile (the blend's :class:`~.blend.LaneLayout`)."""
+def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig, tile: tuple = (TILE, TILE)) -> Projected:
+    """Project activated Gaussians for a view; the tile rectangles are those of a grid of tiles of ``tile`` =
+    (columns, rows) pixels (the blend's :attr:`~.blend.LaneLayout.tile`)."""
     means, opacity = ga.means, ga.opacity
     geo = covariance_2d(means, ga.sigmas, ga.quats, view, cfg)
     tcam, tz, in_front, inv_z = geo.tcam, geo.tcam.z, geo.in_front, geo.inv_z
@@ -245,14 +245,14 @@ def project(ga: GaussianArrays, view: ViewParams, cfg: RasterConfig, tile_rows: 
         k2 = 2.0 * dr.log(o * (1.0 / cfg.alpha_min))
         valid = in_front & (dt > 0) & (k2 >= 0)
         rect, count, valid, ellipse = box(dr.detach(mean2d), a, b, c, dt, k2, valid, view.width_f, view.height_f,
-                                          ellipse=cfg.footprint == "ellipse", tile_rows=tile_rows)
+                                          ellipse=cfg.footprint == "ellipse", tile=tile)
         mid = 0.5 * (a + c)
         lam = mid + dr.sqrt(fmax(mid * mid - dt, 0.1))
         radii = dr.select(valid, mi.Int32(dr.ceil(3.0 * dr.sqrt(lam))), 0)
 
     # One kernel for every output: evaluated where each is first needed (the depth sort, the tile counts, the
     # rectangles, the ellipse test, the blend's packed features), each would re-run the projection from the gathers
-    footprint = [getattr(ellipse, f.name) for f in dataclasses.fields(ellipse) if f.name != "tile_rows"] \
+    footprint = [getattr(ellipse, f.name) for f in dataclasses.fields(ellipse) if f.name != "tile"] \
         if ellipse is not None else []
     dr.eval(mean2d, conic, opacity, color, tz, rect, count, radii, footprint)
     return Projected(mean2d=mean2d, conic=conic, opacity=opacity, color=color, depth=tz,

@@ -193,11 +193,11 @@ class ProjectOp(dr.CustomOp):
     view's rotation, translation and centre are inputs of their own (a pose correction differentiates them)."""
 
     def eval(self, means, scales, rotations, opacities, sh_dc, sh_rest, R, t, center, view, cfg, degree, k_rest,
-             tile_rows, enabled, holder):
+             tile, enabled, holder):
         self.x = _Inputs(means, scales, rotations, opacities, sh_dc, sh_rest, degree, k_rest)
         self.view = dataclasses.replace(view, R=R, t=t, center=center)
         self.cfg, self.k_rest, self.enabled = cfg, k_rest, enabled
-        proj = project(self.x.arrays(), self.view, cfg, tile_rows)
+        proj = project(self.x.arrays(), self.view, cfg, tile)
         holder.proj = proj
         return proj.mean2d, proj.conic, proj.opacity, proj.color, proj.depth
 
@@ -247,11 +247,11 @@ def uses_hand_written_backward(g: Gaussians, view: ViewParams) -> bool:
     return dr.grad_enabled((tuple(getattr(g, t) for t in PARAMETER_NAMES), view.R, view.t, view.center))
 
 
-def project_model(g: Gaussians, degree: int, view: ViewParams, cfg: RasterConfig, tile_rows: int) -> Projected:
-    """``project(GaussianArrays.from_gaussians(g, degree), view, cfg, tile_rows)``, with the hand-written reverse
+def project_model(g: Gaussians, degree: int, view: ViewParams, cfg: RasterConfig, tile: tuple) -> Projected:
+    """``project(GaussianArrays.from_gaussians(g, degree), view, cfg, tile)``, with the hand-written reverse
     mode of :class:`ProjectOp` where :func:`uses_hand_written_backward`."""
     if not uses_hand_written_backward(g, view):
-        return project(GaussianArrays.from_gaussians(g, degree), view, cfg, tile_rows)
+        return project(GaussianArrays.from_gaussians(g, degree), view, cfg, tile)
     tables = [getattr(g, t) for t in PARAMETER_NAMES]
     k_rest = int(g.sh_rest.shape[1]) if len(g.sh_rest.shape) == 3 else 0
     holder = _Holder()
@@ -259,7 +259,7 @@ def project_model(g: Gaussians, degree: int, view: ViewParams, cfg: RasterConfig
         bool(dr.grad_enabled(getattr(view, v))) for v in _VIEW)
     mean2d, conic, opacity, color, depth = dr.custom(
         ProjectOp, *[t.array for t in tables], view.R, view.t, view.center, view, cfg, int(degree), k_rest,
-        int(tile_rows), enabled, holder)
+        (int(tile[0]), int(tile[1])), enabled, holder)
     proj = holder.proj
     return Projected(mean2d=mean2d, conic=conic, opacity=opacity, color=color, depth=depth, rect=proj.rect,
                      tile_count=proj.tile_count, radii=proj.radii, ellipse=proj.ellipse)

@@ -83,7 +83,7 @@ def render(g: Gaussians, camera: Camera | ViewParams, background=(0.0, 0.0, 0.0)
     if deg < 0 or deg > g.sh_degree:
         raise ValueError(f"sh_degree {sh_degree} is outside 0..{g.sh_degree} (the model's SH degree)")
     view = camera if isinstance(camera, ViewParams) else ViewParams.from_camera(camera)
-    projector = (lambda rows: project_model(g, deg, view, cfg, rows)) if g.n > 0 else None
+    projector = (lambda tile: project_model(g, deg, view, cfg, tile)) if g.n > 0 else None
     return _render(projector, view, background, cfg, capacity)
 
 
@@ -93,20 +93,21 @@ def render_arrays(ga: GaussianArrays | None, camera: Camera | ViewParams, backgr
     :class:`ViewParams`; gradients through Dr.Jit's AD of the projection. ``capacity``: see
     :func:`~mi_gaussians.raster.binning.bin_gaussians`."""
     view = camera if isinstance(camera, ViewParams) else ViewParams.from_camera(camera)
-    projector = (lambda rows: project(ga, view, cfg, rows)) if ga is not None and dr.width(ga.opacity) > 0 \
+    projector = (lambda tile: project(ga, view, cfg, tile)) if ga is not None and dr.width(ga.opacity) > 0 \
         else None
     return _render(projector, view, background, cfg, capacity)
 
 
 def _render(projector, view: ViewParams, background, cfg: RasterConfig, capacity: int | None) -> RenderOutput:
-    """Binning and blending of what ``projector(tile_rows)`` projects (None: an empty scene)."""
+    """Binning and blending of what ``projector(tile)`` projects (``tile``: the layout's (columns, rows); None: an
+    empty scene)."""
     bg = _background(background)
     W, H = view.width, view.height
     layout = _blend_module.lane_layout()      # (looked up at each render: benchmarks and tests swap it)
     tiles_x, tiles_y = layout.tiles(W, H)
 
     if projector is not None:
-        proj = projector(layout.tile_rows)
+        proj = projector(layout.tile)
         bins = bin_gaussians(proj.depth, proj.rect, proj.tile_count, tiles_x, tiles_y, capacity, proj.ellipse,
                              (view.width_f, view.height_f))
         radii = proj.radii
