@@ -83,8 +83,9 @@ def main(argv=None) -> int:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     cam = tr.views.camera(0)
-    tiles_x, tiles_y = lane_layout().tiles(cam.width, cam.height)
-    lanes = tiles_x * tiles_y * lane_layout().lanes_per_tile
+    layout = tr.layout or lane_layout()          # (the trainer's choice: raster.lanes)
+    tiles_x, tiles_y = layout.tiles(cam.width, cam.height)
+    lanes = tiles_x * tiles_y * layout.lanes_per_tile
     groups = defaultdict(lambda: [0, 0.0])
     for h in history:
         kind = str(h["type"]).split(".")[-1]

@@ -108,7 +108,8 @@ def print_split(name: str, loop: dict, training_seconds: float) -> None:
     print(f"recordings {loop['recordings']}, kernels built {loop.get('compiles', '?')} (and "
           f"{loop.get('cache_loads', '?')} loaded from the kernel cache), overflows {loop['overflows']} "
           f"({loop['replayed']} iterations replayed), traced iterations {loop['traced']}, refinements {loop['refinements']}, syncs {loop['syncs']}; outside the "
-          f"training time: evaluation {loop['outside']['evaluation']:.1f} s, saving {loop['outside']['saving']:.1f} s")
+          f"training time: evaluation {loop['outside']['evaluation']:.1f} s, saving {loop['outside']['saving']:.1f} s; "
+          f"iterations by the blend's pixels per lane: {loop.get('lanes', '?')}")
 
 
 def main(argv=None) -> int:

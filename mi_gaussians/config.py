@@ -47,6 +47,10 @@ SSIM_PADDINGS = ("same", "valid")
 #: ``RasterConfig.footprint``: the tiles a Gaussian is blended in (raster/footprint.py): 'ellipse', those its
 #: alpha >= alpha_min ellipse reaches; 'box', every tile of that ellipse's bounding box. Same image and gradients.
 FOOTPRINTS = ("ellipse", "box")
+#: ``RasterConfig.lanes``: how training on CUDA maps the blend's pixels to lanes (raster/blend.py): 'balanced', the
+#: layout the tiles' load calls for (``balanced_layout``: fewer pixels per lane when one tile holds a large share of
+#: the instances); 'fixed', the backend's one layout. The speed only: the same images, gradients up to float sums.
+LANES = ("balanced", "fixed")
 #: ``OptimConfig.coarse_to_fine``: 'off' (every iteration at full resolution, the reference), 'spectrum'
 #: (DashGaussian's schedule from the images' Fourier spectra: optim/resolution.py).
 COARSE_TO_FINE = ("off", "spectrum")
@@ -119,6 +123,8 @@ class RasterConfig:
                                              # ellipse reaches ('ellipse'), or in every tile of the ellipse's bounding
                                              # box ('box'; the reference: a 3-sigma square); the same image and
                                              # gradients, less work
+    lanes: str = "balanced"                  # LANES: training on CUDA picks the blend's pixels per lane by the tiles'
+                                             # load ('balanced') or keeps the backend's one layout ('fixed')
 
 
 @dataclass(frozen=True)
@@ -456,7 +462,7 @@ RULES: dict[str, "Range | tuple[str, ...]"] = {
     "densify.reset_opacity": _OPEN_FRACTION, "densify.weight_prune": Range(0, 1),
     "densify.error_gate": Range(0), "densify.error_views": _COUNT, "densify.error_threshold": Range(0, 1, open_high=True),
     "densify.empty_background": EMPTY_BACKGROUNDS, "densify.empty_screen_fraction": Range(0, 1),
-    "raster.footprint": FOOTPRINTS, "raster.near_plane": _POSITIVE, "raster.guard_band": _POSITIVE, "raster.alpha_min": _OPEN_FRACTION,
+    "raster.footprint": FOOTPRINTS, "raster.lanes": LANES, "raster.near_plane": _POSITIVE, "raster.guard_band": _POSITIVE, "raster.alpha_min": _OPEN_FRACTION,
     "raster.alpha_max": Range(0, 1, open_low=True), "raster.transmittance_min": Range(0, 1, open_high=True),
     "mcmc.cap_max": _COUNT, "mcmc.refine_every": _COUNT, "mcmc.min_opacity": Range(0, 1, open_high=True),
     "mcmc.init_opacity": _OPEN_FRACTION, "mcmc.init_scale": _POSITIVE,

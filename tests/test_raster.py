@@ -396,6 +396,42 @@ def test_lane_layout_rejects_what_the_kernels_cannot_map():
     assert LaneLayout(pixels=8, start_lanes=8, tile_rows=8, tile_cols=8).tile == (8, 8)
 
 
+@pytest.mark.parametrize("layout", ["llvm", "cuda"])
+def test_a_render_reports_its_heaviest_tile(layout):
+    """``out.max_tile``: the most instances blended in one tile. Three small Gaussians inside the first tile (of 8 x 8
+    and of 16 x 16 pixels alike), one alone in another: 3 of 4; an empty scene: 0."""
+    cam = sf.generic_camera(64, 48)
+    px, py, z = np.array([2.5, 4.5, 3.5, 44.5]), np.array([2.5, 3.5, 4.5, 20.5]), np.array([3.0, 4.0, 5.0, 3.5])
+    n = len(px)
+    scales = np.repeat(np.log(0.4 * z / cam.fx)[:, None], 3, axis=1)       # 0.4 pixels: ~2.5 pixels of alpha >= 1/255
+    dc, _ = sf.random_sh(np.random.default_rng(0), n, 0)
+    params = sf.make_params(sf.pixel_to_world(cam, px, py, z), scales, np.tile([1.0, 0, 0, 0], (n, 1)),
+                            np.full(n, 3.0), dc)
+    out = mig.render(mig.Gaussians.from_numpy(**params), cam, layout=LANE_LAYOUTS[layout])
+    assert int(out.n_blended[0]) == 4 and int(out.max_tile[0]) == 3
+    empty = mig.render(mig.Gaussians.from_numpy(**sf.empty_scene()[0]), cam, layout=LANE_LAYOUTS[layout])
+    assert int(empty.max_tile[0]) == 0
+
+
+def test_the_balanced_layout_follows_the_heaviest_tiles_share():
+    """On CUDA, the most pixels per lane whose heaviest tile's lanes stay within BALANCE times the mean resident lane's
+    work: for the heaviest tile's share of the instances counted here on the cases timed on an H200 (a 7k
+    mi_objects/colmap model at 200, 400 and 800 pixels square; synthetic scenes), the layout that was fastest there
+    (docs/benchmarks/gpu.md); fewer pixels as the share grows; on the CPU, its one layout whatever the share."""
+    from mi_gaussians.raster.blend import CUDA_LAYOUTS, balanced_layout
+
+    # (the heaviest tile's instances, all tiles' instances, pixels per lane of the fastest layout on the H200)
+    timed = [(4796, 101_288, 1), (2216, 167_300, 1), (1202, 362_550, 1), (256, 558_825, 4), (546, 2_849_064, 4),
+             (1440, 14_460_546, 4), (501, 274_670, 2), (164, 82_642, 2)]
+    for heaviest, total, pixels in timed:
+        assert balanced_layout(heaviest / total, cuda=True).pixels == pixels, (heaviest, total)
+    chosen = [balanced_layout(s, cuda=True) for s in np.geomspace(1e-7, 1.0, 300)]
+    assert all(c in CUDA_LAYOUTS for c in chosen)
+    assert [c.pixels for c in chosen] == sorted((c.pixels for c in chosen), reverse=True)
+    assert {c.pixels for c in chosen} == {4, 2, 1} and chosen[0] == LANE_LAYOUTS["cuda"]
+    assert balanced_layout(0.0, cuda=False) == balanced_layout(1.0, cuda=False) == LANE_LAYOUTS["llvm"]
+
+
 @pytest.mark.parametrize("footprint", ["box", "ellipse"])
 @pytest.mark.parametrize("alpha_min", [1.0 / 255.0, 1e-6, 0.2])
 def test_the_backward_packet_skip_changes_no_gradient(monkeypatch, ordered_sums, footprint, alpha_min):

@@ -160,6 +160,40 @@ def test_frozen_training_with_the_cuda_sorts_equals_traced_training(scene, one_t
     assert_same_training(frozen, traced)
 
 
+def test_the_chosen_lane_layout_reaches_frozen_and_traced_steps(scene, one_thread, monkeypatch):  # noqa: F811
+    """``raster.lanes`` 'balanced': the layout ``balanced_layout`` gives at the first iteration and at each refinement
+    is the one the iterations after it blend with. Choices alternating between two CPU layouts: the frozen steps
+    report the traced renders' heaviest-tile shares (the same values at the same choices), the frozen loop ends with
+    the traced loop's model bit for bit and counts each layout's iterations; 'fixed' asks for no choice."""
+    from mi_gaussians.optim import trainer as trainer_module
+    from mi_gaussians.raster.blend import LANE_LAYOUTS, LaneLayout
+
+    other = LaneLayout(pixels=4, start_lanes=8, tile_rows=8, tile_cols=8)
+    calls = []
+
+    def alternate(share, cuda):
+        calls[-1].append(share)
+        return other if len(calls[-1]) % 2 else LANE_LAYOUTS["llvm"]
+
+    monkeypatch.setattr(trainer_module, "balanced_layout", alternate)
+    cfg = small_config(300)
+    runs = []
+    for c in (cfg, dataclasses.replace(cfg, freeze=False)):
+        calls.append([])
+        runs.append(_train(scene, c, 130))
+    frozen, traced = runs
+    assert len(calls[0]) >= 2 and calls[0] == calls[1] and all(0 < s <= 1 for s in calls[0])
+    assert frozen.loop.lanes == traced.loop.lanes and set(frozen.loop.lanes) == {"4", "8"}
+    assert sum(frozen.loop.lanes.values()) == 130
+    assert_same_training(frozen, traced)
+    calls.append([])
+    fixed = _train(scene, dataclasses.replace(cfg, raster=dataclasses.replace(cfg.raster, lanes="fixed")), 130)
+    assert calls[-1] == [] and fixed.layout is None and fixed.loop.lanes == {"8": 130}
+    # (the two layouts sum the gradients in another order: the model is not the same bits, so the frozen loop's
+    # equality with the traced one above says both blended with the chosen layouts)
+    assert any(not np.array_equal(frozen.gaussians.numpy()[k], v) for k, v in fixed.gaussians.numpy().items())
+
+
 def test_frozen_absgrad_training_equals_traced_training(scene, one_thread):  # noqa: F811
     """With --absgrad, densifying at 100 and until 110 of 130 iterations: the frozen steps that gather statistics
     ask the backward pass for the absolute sums and those after 110 do not, and the run ends with the traced loop's

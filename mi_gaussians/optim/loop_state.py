@@ -50,6 +50,7 @@ class LoopStats:
     traced: int = 0
     refinements: int = 0
     syncs: int = 0
+    lanes: dict = field(default_factory=dict)   # iterations per blend layout's pixels per lane (raster.lanes)
     outside: dict = field(default_factory=lambda: {"evaluation": 0.0, "saving": 0.0})
 
     @contextmanager
@@ -119,7 +120,7 @@ class TrainingStopped(Exception):
 @dataclass
 class Pending:
     """A queued frozen iteration: its view, the random streams' states before it (to replay it) and its device
-    results (loss, ok flag, the instance list's length, the instances blended)."""
+    results (loss, ok flag, the instance list's length, the instances blended, the most of them in one tile)."""
 
     step: int
     view: int
@@ -128,3 +129,4 @@ class Pending:
     ok: object
     instances: object
     blended: object
+    max_tile: object

@@ -177,9 +177,11 @@ def training_loss(out, target, lambda_dssim, strategy: Strategy, params: Gaussia
 class TrainStep:
     """A training iteration without host synchronization: render, loss, backward, statistics, masked Adam step.
 
-    ``step(params, state, inputs, valid, sh_degree, update_state, capacity, exposure, pose)`` returns device values
-    ``(loss, ok, instances, blended)`` (1 element each: the instance list's length, which the capacity must hold, and
-    the (Gaussian, tile) pairs blended) and changes ``params`` and ``state`` in place. ``valid`` is the
+    ``step(params, state, inputs, valid, sh_degree, update_state, capacity, exposure, pose, layout)`` returns device
+    values ``(loss, ok, instances, blended, max_tile)`` (1 element each: the instance list's length, which the
+    capacity must hold, the (Gaussian, tile) pairs blended and the most of them in one tile) and changes ``params``
+    and ``state`` in place; ``layout``: the blend's :class:`~mi_gaussians.raster.blend.LaneLayout` (None: the
+    backend's), a new one a new recording. ``valid`` is the
     ``ok`` of the previous step (``mi.Bool(True)`` after a synchronization). ``freeze=False`` runs the same code
     traced every time (a reference for tests)."""
 
@@ -190,12 +192,12 @@ class TrainStep:
         lam = float(lambda_dssim)
 
         def step(params: GaussianAdam, state, inputs: StepInputs, valid, sh_degree: int, update_state: bool,
-                 capacity: int, n: int, exposure, pose):
+                 capacity: int, n: int, exposure, pose, layout):
             # (n, the number of rows (a size class when padded), is an argument so that a new count always makes a
             # new recording)
             view = inputs.view if pose is None else pose.view(inputs.view, inputs.view_index)
             out = render(params.gaussians, view, background=inputs.background, sh_degree=sh_degree,
-                         cfg=raster, capacity=capacity)
+                         cfg=raster, capacity=capacity, layout=layout)
             strategy.step_pre_backward(params, state, None, out, collect=update_state)
             target = composite_target(inputs.target, inputs.transparency if random_background else None,
                                       inputs.background, fixed)
@@ -214,7 +216,7 @@ class TrainStep:
             if pose is not None:
                 pose.set_learning_rate(inputs.pose_lr)
                 pose.step(inputs.view_index, active=ok)
-            return loss, ok, mi.UInt32(out.n_instances), mi.UInt32(out.n_blended)
+            return loss, ok, mi.UInt32(out.n_instances), mi.UInt32(out.n_blended), out.max_tile
 
         # recordings are made when the model's size changes (densification), so many over a run: no warning
         self._step = dr.freeze(step, limit=4, warn_after=1 << 30) if freeze else step
@@ -226,6 +228,6 @@ class TrainStep:
         return self._step.n_recordings if self.frozen else 0
 
     def __call__(self, params: GaussianAdam, state, inputs: StepInputs, valid, sh_degree: int, update_state: bool,
-                 capacity: int, exposure=None, pose=None):
+                 capacity: int, exposure=None, pose=None, layout=None):
         return self._step(params, state, inputs, valid, int(sh_degree), bool(update_state), int(capacity), params.n,
-                          exposure, pose)
+                          exposure, pose, layout)

@@ -30,6 +30,7 @@ from ..data.dataset import Dataset
 from ..drjit_utils import exact_float_math
 from ..evaluate import evaluate_views, summarize
 from ..model.gaussians import Gaussians
+from ..raster.blend import balanced_layout, lane_layout
 from ..raster.rasterize import render
 from .. import run_folder
 from . import checkpoint, guard
@@ -99,6 +100,10 @@ class Trainer:
                                     alpha_weight=cfg.optim.alpha_weight)
         self.capacity: int | None = None   # tile-instance capacity of frozen steps (set by the first traced one)
         self._needed = 0                   # the instances it was made for
+        self.layout = None                 # the blend's lane layout (None: the backend's; see _choose_layout)
+        self._layout_due = True            # (chosen at the first iteration and at each refinement)
+        self._shares: list[float] = []     # each iteration's heaviest tile's share of its blended instances since
+                                           # the last choice of layout
         self._refine_at: int | None = None  # an iteration whose refinement is still to run (see _refine)
         self.loop = LoopStats()            # time split, recordings, overflows, syncs (a refinement's own not counted)
         self._peak = 0                     # most instances a committed frozen step needed since the last traced one
@@ -218,7 +223,7 @@ class Trainer:
         views = self.views
         views.set_scale(views.scale_at(step))
         camera = views.camera(idx) if self.poses is None else self.poses.view(views.view(idx), idx)
-        out = render(g, camera, background=bg, sh_degree=degree, cfg=cfg.raster)
+        out = render(g, camera, background=bg, sh_degree=degree, cfg=cfg.raster, layout=self.layout)
         self.strategy.step_pre_backward(self.params, self.strategy_state, step, out,
                                         collect=self.strategy.updates_state_at(step))
         depth = views.depth_of(idx)
@@ -249,7 +254,10 @@ class Trainer:
             self.poses.step(idx)
         if refines:
             self._refine_at = step
-        return value, int(out.n_instances), int(out.n_blended[0]) if dr.is_array_v(out.n_blended) else 0
+        blended = int(out.n_blended[0]) if dr.is_array_v(out.n_blended) else 0
+        if blended:
+            self._shares.append(int(out.max_tile[0]) / blended)
+        return value, int(out.n_instances), blended
 
     def _refine(self) -> None:
         """The strategy's refinement of iteration ``self._refine_at`` (densification, pruning, opacity reset), after
@@ -284,6 +292,17 @@ class Trainer:
             self.capacity = capacity_for(1.3 * need)
         self._peak = 0
 
+    def _choose_layout(self) -> None:
+        """The blend's lane layout from the first iteration and from each refinement iteration on (``raster.lanes``
+        'balanced'; the frozen loop's traced iterations, so that a new layout, a new recording of the frozen step, comes
+        at most every 100 iterations while densifying): the one :func:`~mi_gaussians.raster.blend.balanced_layout`
+        gives for the mean share of the heaviest tile over the iterations since the last choice. The traced loop
+        chooses at the same iterations from the same renders."""
+        if self.cfg.raster.lanes == "balanced" and self._shares:
+            share = sum(self._shares) / len(self._shares)
+            self.layout = balanced_layout(share, cuda=dr.backend_v(mi.Float) == dr.JitBackend.CUDA)
+        self._shares, self._layout_due = [], False
+
     def _class_rows(self) -> int:
         """The rows of the size class of the model (:func:`.train_step.row_class`; its own rows when not padded)."""
         n = self.n_gaussians
@@ -313,11 +332,11 @@ class Trainer:
         if self._valid is None:
             self._valid = dr.opaque(mi.Bool, True)
         self._pad()
-        loss, ok, instances, blended = self.train_step(self.params, self.strategy_state, inputs, self._valid, degree,
-                                              self.strategy.updates_state_at(step), self.capacity, self.exposure,
-                                              self.poses)
+        loss, ok, instances, blended, max_tile = self.train_step(
+            self.params, self.strategy_state, inputs, self._valid, degree, self.strategy.updates_state_at(step),
+            self.capacity, self.exposure, self.poses, self.layout)
         self._valid = ok
-        self._pending.append(Pending(step, idx, host, loss, ok, instances, blended))
+        self._pending.append(Pending(step, idx, host, loss, ok, instances, blended, max_tile))
         self.step = step
 
     def _resolve(self) -> bool:
@@ -344,7 +363,10 @@ class Trainer:
                     return False
                 raise self._diverged(loss, p.step, p.view)
             self._peak = max(self._peak, instances)
-            self._commit(p.step, loss, int(p.blended[0]))
+            blended = int(p.blended[0])
+            if blended:
+                self._shares.append(int(p.max_tile[0]) / blended)
+            self._commit(p.step, loss, blended)
         self.check_finite()
         return True
 
@@ -355,6 +377,8 @@ class Trainer:
         self.history.loss.append(loss)
         self.history.gaussians.append(self.n_gaussians)
         self.history.instances.append(blended)
+        pixels = str((self.layout or lane_layout()).pixels)
+        self.loop.lanes[pixels] = self.loop.lanes.get(pixels, 0) + 1
         self.history.seconds.append(round(self.elapsed + time.perf_counter() - self._t0, 4))
         if self._bar is not None:
             self._bar.update(1)
@@ -406,6 +430,8 @@ class Trainer:
             self._commit(step, loss, blended)
             if self.cfg.freeze:
                 self._set_capacity_after_traced(instances)
+            if self._layout_due or self.strategy.refines_at(step):     # (the frozen loop's traced iterations)
+                self._choose_layout()
         else:
             recordings = self.train_step.recordings
             with self.loop.timed("frozen") as part:

@@ -41,6 +41,7 @@ class Bins:
     fits: object = True       # with a capacity: mi.Bool (width 1), total <= capacity
     n_blended: object = None  # instances in the tiles' ranges (a device mi.UInt32, width 1): n_instances less those
                               # of the sentinel bucket (past the capacity, or tiles the footprint's ellipse misses)
+    tile_counts: object = None  # (n_tiles + 1,) mi.UInt32: 0, then each tile's instances (tile_start's differences)
 
     @property
     def n_tiles(self) -> int:
@@ -203,4 +204,4 @@ def bin_gaussians(depth: "mi.Float", rect: tuple, tile_count: "mi.UInt32", tiles
     tile_start = dr.cumsum(hist)                     # inclusive scan of the shifted histogram = [0, starts..., total]
     dr.eval(gaussian, tile_start)
     return Bins(gaussian=gaussian, tile_start=tile_start, n_instances=total, tiles_x=tiles_x, tiles_y=tiles_y,
-                fits=fits, n_blended=dr.gather(mi.UInt32, tile_start, mi.UInt32(n_tiles)))
+                fits=fits, n_blended=dr.gather(mi.UInt32, tile_start, mi.UInt32(n_tiles)), tile_counts=hist)

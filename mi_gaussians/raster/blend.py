@@ -100,8 +100,8 @@ class LaneLayout:
 # Gaussians), 0.92-0.94x on them rendered at twice their size, 0.98-1.02x at four times, 0.92x on 100k synthetic
 # Gaussians at 800x800, 1.09x on 500k and 1.29x on 1M at 1600x1600 (Gaussians about 36 pixels wide: the instances
 # grow more than the blend shrinks). 4 x 8 tiles gain more on the trained models and lose 7-12 % at four times their
-# size. CUDA keeps the layout measured on the H100 (a warp of 32 lanes: 4 pixels, the 16 x 16 tile's 64 lanes
-# starting together).
+# size. CUDA's default is the layout measured on the H100 (a warp of 32 lanes: 4 pixels, the 16 x 16 tile's 64 lanes
+# starting together); training chooses among CUDA_LAYOUTS by the tiles' load (below).
 LANE_LAYOUTS = {"llvm": LaneLayout(pixels=8, start_lanes=8, tile_rows=8, tile_cols=8),
                 "cuda": LaneLayout(pixels=4, start_lanes=64)}
 
@@ -109,6 +109,39 @@ LANE_LAYOUTS = {"llvm": LaneLayout(pixels=8, start_lanes=8, tile_rows=8, tile_co
 def lane_layout() -> LaneLayout:
     """The active variant's backend's layout."""
     return LANE_LAYOUTS["cuda" if dr.backend_v(mi.Float) == dr.JitBackend.CUDA else "llvm"]
+
+
+# On CUDA a tile's lanes loop over its instance list, so a kernel lasts at least as long as its heaviest tile takes:
+# that tile's list times the pixels each of its lanes evaluates. Trained models of objects on an empty background put
+# 8-11 times the mean tile's instances in their heaviest tile, and half the tiles are empty (mi_objects/colmap at
+# 200, 400 and 800 pixels square); synthetic scenes of random Gaussians 1.2-1.4 times. Fewer pixels per lane shorten
+# that tile's walk, more share each lane's gathers and gradient scatters: measured on an H200
+# (docs/benchmarks/gpu.md, 2026-11-29), the blend's forward + backward on the 7k mi_objects/colmap model took
+# 11.1 ms with 4 pixels per lane, 7.9 with 2, 6.4 with 1 (4.8 / 4.2 / 3.8 rendered at 800x800), and 100k synthetic
+# Gaussians at 800x800 1.8 / 2.2 / 3.1 ms. So training chooses the layout from the load (:func:`balanced_layout`).
+#: CUDA's layouts, the most pixels per lane first (a 16 x 16 tile's lanes starting together)
+CUDA_LAYOUTS = (LaneLayout(pixels=4, start_lanes=64), LaneLayout(pixels=2, start_lanes=128),
+                LaneLayout(pixels=1, start_lanes=256))
+#: lanes a GPU keeps running at once, about: an H100's or H200's 132 multiprocessors with 1024 threads each
+RESIDENT_LANES = 132 * 1024
+#: how many times the mean resident lane's work the heaviest tile's lanes may take
+BALANCE = 3.0
+
+
+def balanced_layout(share: float, cuda: bool) -> LaneLayout:
+    """The blend's layout for renders whose heaviest tile holds ``share`` of the instances blended (its pairs over
+    all tiles' pairs): on CUDA the one with the most pixels per lane whose heaviest tile's lanes evaluate at most
+    :data:`BALANCE` times as many (pixel, instance) pairs as the mean of the lanes the GPU runs at once; on the CPU,
+    whose few threads take blocks of lanes as they come, the backend's one layout. (On the cases measured: 1 pixel per
+    lane on trained object models at 200 to 800 pixels square, where that ratio is 7-100 with 4 pixels; 4 on synthetic
+    100k Gaussians at 800x800 (0.97), 300k at 1200x1200 and 1M at 1600x1600 (0.40, 0.21); 2 on 30k and 100k at
+    400x400 (3.9-4.2 with 4 pixels, 1.9-2.1 with 2).)"""
+    if not cuda:
+        return LANE_LAYOUTS["llvm"]
+    for layout in CUDA_LAYOUTS:
+        if float(share) * layout.pixels * RESIDENT_LANES <= BALANCE * TILE * TILE:
+            return layout
+    return CUDA_LAYOUTS[-1]
 
 
 class BlendStats:

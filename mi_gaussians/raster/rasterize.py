@@ -26,7 +26,7 @@ from ..drjit_utils import fmax
 from ..model.gaussians import Gaussians
 from .binning import Bins, bin_gaussians
 from . import blend as _blend_module
-from .blend import BlendStats, blend, make_frame
+from .blend import BlendStats, LaneLayout, blend, make_frame
 from .projection import GaussianArrays, ViewParams, project
 from .projection_backward import project_model
 
@@ -43,6 +43,13 @@ class RenderOutput:
     n_blended: object = 0     # the pairs blended (a device mi.UInt32, width 1; raster.footprint 'ellipse' leaves out
                               # the rectangles' tiles a Gaussian does not reach)
     _stats: BlendStats = field(repr=False, default=None)
+    _tile_counts: object = field(repr=False, default=None)    # Bins.tile_counts
+
+    @property
+    def max_tile(self) -> "mi.UInt32":
+        """The most pairs blended in one tile (a device mi.UInt32, width 1, reduced when read: what
+        :func:`~.blend.balanced_layout` weighs against ``n_blended``)."""
+        return dr.max(self._tile_counts) if self._tile_counts is not None else dr.zeros(mi.UInt32, 1)
 
     @property
     def means2d_grad(self) -> "mi.Vector2f":
@@ -76,34 +83,39 @@ def _background(background) -> tuple:
 
 
 def render(g: Gaussians, camera: Camera | ViewParams, background=(0.0, 0.0, 0.0), sh_degree: int | None = None,
-           cfg: RasterConfig = RasterConfig(), capacity: int | None = None) -> RenderOutput:
+           cfg: RasterConfig = RasterConfig(), capacity: int | None = None,
+           layout: LaneLayout | None = None) -> RenderOutput:
     """Render raw 3DGS parameters (see the module docstring). ``capacity``: a fixed length of the tile-instance list,
-    for a frozen training step that cannot read the count back (see :mod:`.binning`; check ``out.fits``)."""
+    for a frozen training step that cannot read the count back (see :mod:`.binning`; check ``out.fits``).
+    ``layout``: the blend's lanes (:class:`~.blend.LaneLayout`; the backend's default when None): the speed only."""
     deg = g.sh_degree if sh_degree is None else int(sh_degree)
     if deg < 0 or deg > g.sh_degree:
         raise ValueError(f"sh_degree {sh_degree} is outside 0..{g.sh_degree} (the model's SH degree)")
     view = camera if isinstance(camera, ViewParams) else ViewParams.from_camera(camera)
     projector = (lambda tile: project_model(g, deg, view, cfg, tile)) if g.n > 0 else None
-    return _render(projector, view, background, cfg, capacity)
+    return _render(projector, view, background, cfg, capacity, layout)
 
 
 def render_arrays(ga: GaussianArrays | None, camera: Camera | ViewParams, background=(0.0, 0.0, 0.0),
-                  cfg: RasterConfig = RasterConfig(), capacity: int | None = None) -> RenderOutput:
+                  cfg: RasterConfig = RasterConfig(), capacity: int | None = None,
+                  layout: LaneLayout | None = None) -> RenderOutput:
     """Render activated Gaussians (``None`` or N = 0: an empty scene) for a camera or its prepared
     :class:`ViewParams`; gradients through Dr.Jit's AD of the projection. ``capacity``: see
-    :func:`~mi_gaussians.raster.binning.bin_gaussians`."""
+    :func:`~mi_gaussians.raster.binning.bin_gaussians`; ``layout``: see :func:`render`."""
     view = camera if isinstance(camera, ViewParams) else ViewParams.from_camera(camera)
     projector = (lambda tile: project(ga, view, cfg, tile)) if ga is not None and dr.width(ga.opacity) > 0 \
         else None
-    return _render(projector, view, background, cfg, capacity)
+    return _render(projector, view, background, cfg, capacity, layout)
 
 
-def _render(projector, view: ViewParams, background, cfg: RasterConfig, capacity: int | None) -> RenderOutput:
+def _render(projector, view: ViewParams, background, cfg: RasterConfig, capacity: int | None,
+            layout: LaneLayout | None) -> RenderOutput:
     """Binning and blending of what ``projector(tile)`` projects (``tile``: the layout's (columns, rows); None: an
     empty scene)."""
     bg = _background(background)
     W, H = view.width, view.height
-    layout = _blend_module.lane_layout()      # (looked up at each render: benchmarks and tests swap it)
+    if layout is None:
+        layout = _blend_module.lane_layout()      # (looked up at each render: benchmarks and tests swap it)
     tiles_x, tiles_y = layout.tiles(W, H)
 
     if projector is not None:
@@ -133,4 +145,5 @@ def _render(projector, view: ViewParams, background, cfg: RasterConfig, capacity
     rgb = mi.TensorXf(dr.ravel(mi.Color3f(r, gch, b)), (H, W, 3))
     return RenderOutput(rgb=rgb, alpha=mi.TensorXf(alpha, (H, W)), depth=mi.TensorXf(depth, (H, W)),
                         radii=radii, n_instances=bins.n_instances, fits=bins.fits,
-                        n_blended=bins.n_blended if bins.n_blended is not None else 0, _stats=stats)
+                        n_blended=bins.n_blended if bins.n_blended is not None else 0, _stats=stats,
+                        _tile_counts=bins.tile_counts)
