@@ -9,7 +9,8 @@ a GPU with PyTorch, gsplat's CUDA rasterizer (``--peers gsplat``; ``benchmarks/g
 Scene: N Gaussians uniformly spread over a 1.2-radian frustum at depths 2.5-5 (about 8 tile instances per Gaussian
 at 800 x 800 with 100k, like a trained model at that size), random anisotropic scales, rotations, opacities and
 degree-3 SH. Times are medians of ``--repeats`` runs after two warm-up runs (compilation excluded), measured with
-``dr.sync_thread()`` (gsplat: ``torch.cuda.synchronize()``) so the asynchronous kernels are inside the timing.
+``dr.sync_thread()`` (gsplat: ``torch.cuda.synchronize()``) so the asynchronous kernels are inside the timing;
+"frozen fwd+bwd" is ours as a training step runs it (``dr.freeze``: no Python tracing, no read-back).
 "Evaluations" are (pixel x Gaussian) blend steps actually executed by the loops (early termination included),
 divided by the best loop-kernel time. gsplat renders with our near plane (0.2) and ``packed=False`` (its trainer's
 default); the table gives the mean absolute difference of its image from ours as a check that both drew the same
@@ -141,6 +142,7 @@ def main(argv=None) -> int:
 
             t_f = timed(fwd, args.repeats)
             t_fb = timed(fwd_bwd, args.repeats)
+            t_frozen = timed(frozen_fwd_bwd(g, cam, names), args.repeats)
             st = holder["bwd"]._stats
             ev_f = int(st.forward_evaluations[0])
             ev_b = int(st.backward_evaluations[0])
@@ -161,22 +163,59 @@ def main(argv=None) -> int:
                 t_peer = timed(peer, max(1, min(args.repeats, 3)))[0]
             gs = gsplat_case(params, cam, np.array(holder["fwd"].rgb), args.repeats, args.profile) \
                 if "gsplat" in peers else None
-            rows.append((n, res, holder["fwd"].n_instances, t_f, t_fb, ev_f, ev_b, loops, t_peer, gs))
+            rows.append((n, res, holder["fwd"].n_instances, t_f, t_fb, t_frozen, ev_f, ev_b, loops, t_peer, gs))
             print(f"  N={n} {res}x{res}: fwd {t_f[0]*1e3:.1f} ms, fwd+bwd {t_fb[0]*1e3:.1f} ms", file=sys.stderr)
 
     print()
     print("| Gaussians | image | instances | forward ms, median (best) | fwd+bwd ms, median (best) "
-          "| forward loop evals/s | backward loop evals/s | volprim_rf_basic ms (1 spp) | volprim / forward "
-          "| gsplat forward ms | gsplat fwd+bwd ms | ours / gsplat, fwd+bwd | mean abs diff from gsplat |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
-    for n, res, inst, t_f, t_fb, ev_f, ev_b, (k_fwd, k_bwd), t_peer, gs in rows:
+          "| frozen fwd+bwd ms, median (best) | forward loop evals/s | backward loop evals/s | volprim_rf_basic ms (1 spp) | volprim / forward "
+          "| gsplat forward ms | gsplat fwd+bwd ms | ours / gsplat, fwd+bwd (traced, frozen) | mean abs diff from gsplat |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for n, res, inst, t_f, t_fb, t_frozen, ev_f, ev_b, (k_fwd, k_bwd), t_peer, gs in rows:
         peer = f"{t_peer*1e3:.0f} | {t_peer / t_f[0]:.1f}x" if t_peer else "- | -"
-        gsp = (f"{gs['fwd'][0]*1e3:.2f} | {gs['fwd_bwd'][0]*1e3:.2f} | {t_fb[0] / gs['fwd_bwd'][0]:.2f}x "
+        gsp = (f"{gs['fwd'][0]*1e3:.2f} | {gs['fwd_bwd'][0]*1e3:.2f} | {t_fb[0] / gs['fwd_bwd'][0]:.2f}x, frozen {t_frozen[0] / gs['fwd_bwd'][0]:.2f}x "
                f"| {gs['diff']:.1e}") if gs else "- | - | - | -"
         print(f"| {n:,} | {res}x{res} | {inst:,} | {t_f[0]*1e3:.2f} ({t_f[1]*1e3:.2f}) "
-              f"| {t_fb[0]*1e3:.2f} ({t_fb[1]*1e3:.2f}) "
+              f"| {t_fb[0]*1e3:.2f} ({t_fb[1]*1e3:.2f}) | {t_frozen[0]*1e3:.2f} ({t_frozen[1]*1e3:.2f}) "
               f"| {ev_f / (k_fwd * 1e-3) / 1e9:.2f} G | {ev_b / (k_bwd * 1e-3) / 1e9:.2f} G | {peer} | {gsp} |")
     return 0
+
+
+def frozen_fwd_bwd(g, cam, names):
+    """The forward + backward as a training step runs it (``optim/train_step.py``): recorded once with ``dr.freeze``
+    and replayed, with no Python tracing and no read-back of the instance count (a fixed capacity, 1.3 times this
+    view's)."""
+    import drjit as dr
+    import mi_gaussians as mig
+    from mi_gaussians.raster.projection import ViewParams
+
+    view = ViewParams.from_camera(cam)
+    with dr.suspend_grad():
+        capacity = int(1.3 * mig.render(g, view).n_instances) + 256
+
+    def step(g):
+        out = mig.render(g, view, capacity=capacity)
+        dr.backward(dr.sum(out.rgb.array) + dr.sum(out.alpha.array))
+        grads = [dr.grad(getattr(g, k)) for k in names]
+        for k in names:
+            dr.clear_grad(getattr(g, k))
+        return grads, out.fits
+
+    frozen = dr.freeze(step)
+
+    def run():
+        for k in names:
+            dr.enable_grad(getattr(g, k))
+        grads, fits = frozen(g)
+        dr.eval(grads)
+        for k in names:
+            dr.disable_grad(getattr(g, k))
+        return grads, fits
+
+    _, fits = run()
+    if not bool(fits[0]):
+        raise RuntimeError("render.py: the frozen forward + backward's instance capacity did not fit")
+    return run
 
 
 def gsplat_case(params: dict, cam, ours_rgb: np.ndarray, repeats: int, profile: bool) -> dict:
