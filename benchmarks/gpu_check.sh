@@ -160,8 +160,13 @@ if [ "$part" = issue53 ]; then
     step 100 "forward + backward against gsplat" "$OUT/render.md" \
         python3 benchmarks/render.py --variant "${VARIANT:-cuda_ad_rgb}" --peers gsplat --repeats 7 --profile \
         --cases 100000:800 1000000:1600
-    # then, as time allows, where our step's device time goes on the trained model (what to work on next), and the
-    # blend's lane layouts on it
+    # then, as time allows: ours with the model padded to size classes (row_classes=4: fewer new sizes, so fewer
+    # kernels compiled at the refinements, which took 8.1 s of a 46 s run on the H200 on 2026-11-29; on the CPU the
+    # padding costs more than it saves), where our step's device time goes on the trained model (what to work on
+    # next), and the blend's lane layouts on it
+    step 110 "ours with size classes (row_classes=4)" "$OUT/train_ours_classes.md" \
+        python3 benchmarks/train.py mi_objects_colmap --milestones 7000 --schedule 30000 --variant "${VARIANT:-cuda_ad_rgb}" \
+        --out /tmp/ours_classes --set row_classes=4
     run=/tmp/ours/mi_objects_colmap_of_30000
     cp "$run/metrics.json" "$OUT/ours_metrics.json" 2>/dev/null
     step 80 "our training step's kernel profile on the trained model" "$OUT/step_profile.md" \
@@ -170,7 +175,7 @@ if [ "$part" = issue53 ]; then
         python3 benchmarks/layouts.py "$run@.gpu/data/mi_objects/colmap" --variant "${VARIANT:-cuda_ad_rgb}" \
         --layouts 4:64 2:128 1:256 4:32 2:64 --repeats 5
     say done
-    for f in train_gsplat train_ours render step_profile layouts; do
+    for f in train_gsplat train_ours render train_ours_classes step_profile layouts; do
         echo "== $f"; grep -E '^\| [0-9a-zA-Z]|rror' "$OUT/$f.md" 2>/dev/null | tail -n 14
     done
     exit 0

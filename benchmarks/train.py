@@ -36,7 +36,7 @@ DATASETS = {
 
 
 def run_one(name: str, milestones: list[int], out_root: Path, variant: str, schedule: int | None = None,
-            freeze: bool = True) -> list[dict]:
+            freeze: bool = True, settings: tuple = ()) -> list[dict]:
     import mitsuba as mi
 
     mi.set_variant(variant)
@@ -57,7 +57,7 @@ def run_one(name: str, milestones: list[int], out_root: Path, variant: str, sche
     base = TrainConfig(data=DataConfig(resolution=res, background=bg), checkpoint_every=1000, eval_every=1000,
                        save_iterations=tuple(milestones)).with_iterations(schedule)
     cfg = dataclasses.replace(base, optim=dataclasses.replace(base.optim, iterations=iters),
-                              save_iterations=tuple(milestones), freeze=freeze)
+                              save_iterations=tuple(milestones), freeze=freeze).with_settings(settings)
     out = out_root / (name if schedule == iters else f"{name}_of_{schedule}")
     # (the points `mi-gs optimize` starts from: the layout's own, else triangulated from the posed images)
     ds = training_dataset(path, cfg, out, progress=False, log=lambda line: print(line, file=sys.stderr))
@@ -123,16 +123,18 @@ def main(argv=None) -> int:
                          "(default: the last milestone), e.g. 30000 to compare with iteration 2000 of a 30k run")
     ap.add_argument("--loop", choices=("frozen", "traced"), default="frozen",
                     help="the training step: frozen (the default) or traced (--set freeze=false)")
+    ap.add_argument("--set", dest="settings", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                    help="a training setting, as mi-gs optimize's --set (e.g. row_classes=4)")
     args = ap.parse_args(argv)
     rows = []
     for name in args.datasets:
         rows += run_one(name, sorted(args.milestones), Path(args.out), args.variant, args.schedule,
-                        args.loop == "frozen")
+                        args.loop == "frozen", tuple(args.settings))
     print("\n| dataset | iterations | test PSNR | test SSIM | Gaussians | minutes | s / it (at milestone) |")
     print("|---|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         print(f"| {r['dataset']} ({r['note']}) | {r['iterations']:,} | {r['psnr']:.2f} | {r['ssim']:.4f} "
-              f"| {r['gaussians']:,} | {r['minutes']:.1f} | {r['sec_per_iter']:.3f} |")
+              f"| {r['gaussians']:,} | {r['minutes']:.2f} | {r['sec_per_iter']:.3f} |")
     return 0
 
 
