@@ -255,8 +255,7 @@ class Trainer:
         if refines:
             self._refine_at = step
         blended = int(out.n_blended[0]) if dr.is_array_v(out.n_blended) else 0
-        if blended:
-            self._shares.append(int(out.max_tile[0]) / blended)
+        self._note_load(blended, out.max_tile)
         return value, int(out.n_instances), blended
 
     def _refine(self) -> None:
@@ -291,6 +290,12 @@ class Trainer:
         if self.capacity is None or not 1.25 * need <= self.capacity <= 2.0 * need:
             self.capacity = capacity_for(1.3 * need)
         self._peak = 0
+
+    def _note_load(self, blended: int, max_tile) -> None:
+        """Keep an iteration's heaviest tile's share of its ``blended`` instances (``max_tile``: the device count) for
+        the next :meth:`_choose_layout` (nothing when it blended none)."""
+        if blended:
+            self._shares.append(int(max_tile[0]) / blended)
 
     def _choose_layout(self) -> None:
         """The blend's lane layout from the first iteration and from each refinement iteration on (``raster.lanes``
@@ -364,8 +369,7 @@ class Trainer:
                 raise self._diverged(loss, p.step, p.view)
             self._peak = max(self._peak, instances)
             blended = int(p.blended[0])
-            if blended:
-                self._shares.append(int(p.max_tile[0]) / blended)
+            self._note_load(blended, p.max_tile)
             self._commit(p.step, loss, blended)
         self.check_finite()
         return True
