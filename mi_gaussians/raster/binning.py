@@ -199,8 +199,11 @@ def bin_gaussians(depth: "mi.Float", rect: tuple, tile_count: "mi.UInt32", tiles
     perm = stable_bucket_perm(tile, _next_pow2(buckets))
     gaussian = dr.gather(mi.UInt32, gidx, perm)
 
+    # (counted in the sorted order: a SIMD packet's lanes then mostly add into one tile's count, which the LLVM
+    # backend's per-packet reduction of equal indices turns into one write)
+    sorted_tile = dr.gather(mi.UInt32, tile, perm)
     hist = dr.zeros(mi.UInt32, n_tiles + 1)
-    dr.scatter_add(hist, mi.UInt32(1), tile + 1, active=tile < n_tiles)     # (the sentinel bucket: not valid)
+    dr.scatter_add(hist, mi.UInt32(1), sorted_tile + 1, active=sorted_tile < n_tiles)   # (the sentinel: not valid)
     tile_start = dr.cumsum(hist)                     # inclusive scan of the shifted histogram = [0, starts..., total]
     dr.eval(gaussian, tile_start)
     return Bins(gaussian=gaussian, tile_start=tile_start, n_instances=total, tiles_x=tiles_x, tiles_y=tiles_y,
