@@ -310,11 +310,13 @@ def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cf
 
     npix = frame.width * frame.height
     # r, g, b, depth sum, T in image order; every pixel is one lane's (one tile's), so every entry is written below
-    # and the buffers need no zeroing pass (nor do the lane-order ones: every lane writes its own)
+    # once and the buffers need no zeroing pass (nor do the lane-order ones: every lane writes its own). ``Permute``
+    # says so to Dr.Jit, which then writes the P pixels of a lane in one kernel (plain scatters into a buffer that
+    # an earlier scatter wrote make a kernel each: P launches)
     img = [dr.empty(mi.Float, npix) for _ in range(5)]
     for k in range(P):
         for c, v in enumerate((C[k].x, C[k].y, C[k].z, D[k], T[k])):
-            dr.scatter(img[c], v, pix[k], active=valid[k])
+            dr.scatter(img[c], v, pix[k], active=valid[k], mode=dr.ReduceMode.Permute)
     T_lane = dr.empty(mi.Float, n_lanes * P)
     last_lane = dr.empty(mi.UInt32, n_lanes * P)
     ArrayXf, ArrayXu = _array_types()
