@@ -1,6 +1,7 @@
 """Generic Dr.Jit helpers that every layer needs: NumPy <-> Dr.Jit copies, float min/max/clamp, a mean that a frozen
-function computes as the traced code does (:func:`flat_mean`), the logistic function, quaternion rotation matrices
-and the rows of a table of vectors (:func:`row_vectors`).
+function computes as the traced code does (:func:`flat_mean`), the logistic function, quaternion rotation matrices,
+the rows of a table of vectors (:func:`row_vectors`) and a concatenation whose kernels do not depend on the parts'
+lengths (:func:`concat`).
 
 Float min/max/clamp are written with ``dr.select``: ``dr.minimum/maximum/clip`` on floats abort the process when
 Dr.Jit JIT-compiles with libLLVM 15 (see ``drjit-notes.md``). The package selects a newer libLLVM at start-up, but a
@@ -47,6 +48,32 @@ def owned_array(tp, a: np.ndarray):
         padded = np.empty(a.size + _SLACK // a.itemsize, a.dtype)
         padded[:a.size] = a
         dr.scatter(out, tp(padded[:a.size]), dr.arange(mi.UInt32, a.size))
+    return out
+
+
+def concat(arrays: list):
+    """The flat arrays ``arrays`` one after the other (empty ones allowed; all of one type), in kernels that do not
+    depend on their lengths.
+
+    ``dr.concat`` writes each part at an offset that is a literal in its kernel's code, so every new set of lengths
+    builds new kernels: a densification, which appends a different number of rows to every parameter table and
+    moment each time, built a dozen kernels anew at each refinement (compiled again on every backend: on CUDA
+    a compilation costs milliseconds). Here each part after the first is written at ``arange + offset`` with the
+    offset an opaque value: one kernel per part's type and expression, reused at every length."""
+    nonempty = [a for a in arrays if dr.width(a)]
+    if not nonempty:
+        return arrays[0]
+    if len(nonempty) == 1:
+        return nonempty[0]
+    tp = type(nonempty[0])
+    Index = dr.uint32_array_t(tp)
+    out = dr.empty(tp, sum(dr.width(a) for a in nonempty))
+    offset = 0
+    for a in nonempty:
+        m = dr.width(a)
+        idx = dr.arange(Index, m)
+        dr.scatter(out, a, idx + dr.opaque(Index, offset) if offset else idx)
+        offset += m
     return out
 
 

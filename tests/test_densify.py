@@ -17,7 +17,9 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from kernel_log import KernelLog
 from mi_gaussians.config import DensifyConfig, OptimConfig
+from mi_gaussians.drjit_utils import owned_array
 from mi_gaussians.model.gaussians import PARAMETER_NAMES, Gaussians
 from mi_gaussians.optim.adam import GaussianAdam
 from mi_gaussians.optim.densify import DefaultStrategy, DensifyState
@@ -571,3 +573,31 @@ def test_error_gate_densifies_only_the_candidates_whose_score_reaches_it():
     s = DefaultStrategy(dataclasses.replace(DensifyConfig(), error_gate=1.0), EXTENT)
     with pytest.raises(ValueError, match="view_errors"):
         s.step_post_backward(params, s.initialize_state(params.n), 600, out)
+
+
+def test_a_densification_builds_the_same_kernels_whatever_the_counts():
+    """Two densifications that clone, split and prune different numbers of rows launch the same kernels: no count
+    is a literal in their code (``drjit_utils.concat``), so a training run's refinements reuse the kernels the first
+    one built (on CUDA each new kernel costs a compilation)."""
+    def densify(copies: int, log: KernelLog) -> set:
+        rows = [r for r, _, _ in SCENE] * copies
+        params = build(rows, seed=copies)
+        out = fake_out([r for _, _, r in SCENE] * copies, [gx for _, gx, _ in SCENE] * copies)
+        # (inputs in Dr.Jit's own aligned memory, as a render's are: a zero-copy NumPy buffer's alignment is part of
+        # a kernel's code)
+        out = FakeOut(owned_array(mi.Int32, np.array(out.radii)),
+                      mi.Vector2f(*(owned_array(mi.Float, np.array(c)) for c in out.means2d_grad)), out.rgb)
+        s = DefaultStrategy(DensifyConfig(), EXTENT)
+        state = s.initialize_state(params.n)
+        dr.eval()
+        log.cut()
+        info = s.step_post_backward(params, state, 600, out)
+        snapshot(params)
+        assert (info.cloned, info.split, info.pruned) == (2 * copies, copies, 3 * copies)
+        return {h for _, h in log.cut()}
+
+    with KernelLog() as log:
+        densify(2, log)                          # (warm: every kernel built once)
+        first = densify(3, log)
+        second = densify(5, log)
+    assert first and second == first, (len(first), len(second), len(second - first))

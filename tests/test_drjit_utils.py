@@ -131,3 +131,40 @@ def test_flat_mean_has_the_same_bits_in_a_frozen_function(ordered_sums):
         exact = float(np.mean(np.array(a), dtype=np.float64))
         assert abs(float(flat_mean(a)[0]) - exact) <= 1e-6 * float(dr.max(a)[0])
     assert mean_differs > 0
+
+
+@pytest.mark.parametrize("kind", ["Float", "UInt32", "Bool"])
+def test_concat_equals_numpy_concatenation_with_empty_parts(kind):
+    import drjit as dr
+    import mitsuba as mi
+
+    from mi_gaussians.drjit_utils import concat
+
+    tp = getattr(mi, kind)
+    rng = np.random.default_rng(3)
+    parts_np = [rng.integers(0, 2 if kind == "Bool" else 1000, size=m).astype(
+        {"Float": np.float32, "UInt32": np.uint32, "Bool": bool}[kind]) for m in (5, 0, 17, 1, 0, 40)]
+    parts = [tp(p) if p.size else dr.zeros(tp, 0) for p in parts_np]
+    np.testing.assert_array_equal(np.array(concat(parts)), np.concatenate(parts_np))
+    assert np.array(concat([dr.zeros(tp, 0), parts[2]])).tolist() == parts_np[2].tolist()
+    assert dr.width(concat([dr.zeros(tp, 0)])) == 0
+
+
+def test_concat_kernels_do_not_depend_on_the_lengths():
+    """``dr.concat`` writes each part at a literal offset (a new kernel per set of lengths); ``concat`` does not."""
+    import drjit as dr
+    import mitsuba as mi
+    from kernel_log import KernelLog
+
+    from mi_gaussians.drjit_utils import concat
+
+    def run(a: int, b: int, log) -> list:
+        x, y = dr.arange(mi.Float, a) * 2.0, dr.arange(mi.Float, b) + 1.0
+        out = concat([x, y])
+        dr.eval(out)
+        assert np.array(out).tolist() == [2.0 * i for i in range(a)] + [i + 1.0 for i in range(b)]
+        return sorted(h for _, h in log.cut())
+
+    with KernelLog() as log:
+        run(3, 4, log)
+        assert run(10, 7, log) == run(1000, 33, log)

@@ -58,7 +58,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..config import OptimConfig
-from ..drjit_utils import owned_array
+from ..drjit_utils import concat, owned_array
 from ..model.gaussians import PARAMETER_NAMES, Gaussians
 
 
@@ -107,14 +107,6 @@ def flat_index(rows: "mi.UInt32", row_size: int) -> "mi.UInt32":
 def gather_rows(flat, rows: "mi.UInt32", row_size: int):
     """Rows ``rows`` of a flat row-major array (a detached, lazily evaluated gather)."""
     return dr.gather(type(flat), dr.detach(flat), flat_index(rows, row_size))
-
-
-def concat(arrays: list):
-    """``dr.concat`` of flat arrays that tolerates empty ones (``dr.concat`` fails on an empty operand)."""
-    nonempty = [a for a in arrays if dr.width(a)]
-    if not nonempty:
-        return arrays[0]
-    return nonempty[0] if len(nonempty) == 1 else dr.concat(nonempty)
 
 
 def _row_size(shape: tuple) -> int:

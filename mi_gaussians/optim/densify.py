@@ -100,8 +100,8 @@ import mitsuba as mi
 import numpy as np
 
 from ..config import DensifyConfig, check_section
-from ..drjit_utils import fmax, owned_array, quaternion_to_matrix, sigmoid
-from .adam import GaussianAdam, concat, gather_rows
+from ..drjit_utils import concat, fmax, owned_array, quaternion_to_matrix, sigmoid
+from .adam import GaussianAdam, gather_rows
 from .strategy import StepInfo, Strategy
 
 
@@ -366,7 +366,7 @@ class DefaultStrategy(Strategy):
 
         # ---- new rows: clones (exact copies), then the children of the split Gaussians, copy-major like torch's
         # .repeat(k, 1) in the reference
-        child_src = dr.tile(split_idx, k) if n_split else split_idx   # (dr.tile fails on width 0)
+        child_src = concat([split_idx] * k)       # (as dr.tile(split_idx, k), whose kernel holds n_split)
         src = concat([clone_idx, child_src])
         max_screen, reset_done = st.max_screen, st.reset_done
         if dr.width(src):
