@@ -197,16 +197,20 @@ def _pack(values: list, stride: int) -> "mi.Float":
 LOG2E = 1.4426950408889634
 
 
-def _per_instance(packed: "mi.Float", stride: int, inst: "mi.UInt32") -> "mi.Float":
+def _per_instance(packed: "mi.Float", stride: int, inst: "mi.UInt32", count=None) -> "mi.Float":
     """The records of ``packed`` (``stride`` floats per Gaussian, :func:`_pack`) of Gaussians ``inst``, one per
     instance in the order of the tiles' lists: the blend's walk of a tile's list then reads consecutive records, not
     the Gaussians' scattered ones through the list (measured on the CPU, trained models at 200x200 and 400x400:
     render + backward 0.7-0.8x; docs/benchmarks/work_per_step.md). One packet gather and one packet scatter per
-    instance."""
+    instance of the first ``count`` (a device value: the instances in the tiles' ranges, ``Bins.n_blended``; all
+    when None); the records past them, the sentinel bucket's and a capacity's tail, are never read and stay
+    unwritten (a frozen CPU step on mi_objects/colmap: 0.1-0.2 ms less)."""
     ArrayXf = _array_types()[0]
     m = dr.width(inst)
-    buf = dr.empty(mi.Float, m * stride)      # (every record is written: no zeroing pass)
-    dr.scatter(buf, dr.gather(ArrayXf, packed, inst, shape=(stride, m)), dr.arange(mi.UInt32, m))
+    buf = dr.empty(mi.Float, m * stride)      # (no zeroing pass: every record read is written)
+    i = dr.arange(mi.UInt32, m)
+    active = True if count is None else i < count
+    dr.scatter(buf, dr.gather(ArrayXf, packed, inst, shape=(stride, m), active=active), i, active=active)
     return buf
 
 
@@ -224,11 +228,11 @@ def _pack_geometry(mean2d, conic, opacity, depth, alpha_min: float) -> "mi.Float
                   opacity, depth, lo], GEO)
 
 
-def _pack_instances(mean2d, conic, opacity, depth, color, inst, alpha_min: float) -> tuple:
+def _pack_instances(mean2d, conic, opacity, depth, color, inst, alpha_min: float, count=None) -> tuple:
     """The blend's inputs: the geometry and colour records (:func:`_pack_geometry`, [r, g, b, 0]) per instance of
     the list ``inst`` (:func:`_per_instance`), evaluated."""
-    geo = _per_instance(_pack_geometry(mean2d, conic, opacity, depth, alpha_min), GEO, inst)
-    col = _per_instance(_pack([color.x, color.y, color.z], COL), COL, inst)
+    geo = _per_instance(_pack_geometry(mean2d, conic, opacity, depth, alpha_min), GEO, inst, count)
+    col = _per_instance(_pack([color.x, color.y, color.z], COL), COL, inst, count)
     dr.eval(geo, col)
     return geo, col
 
@@ -445,7 +449,8 @@ class BlendOp(dr.CustomOp):
     def eval(self, mean2d, conic, opacity, color, depth, bins, frame, cfg, stats):
         self.bins, self.frame, self.cfg, self.stats = bins, frame, cfg, stats
         self.n = dr.width(opacity)
-        self.geo, self.col = _pack_instances(mean2d, conic, opacity, depth, color, bins.gaussian, cfg.alpha_min)
+        self.geo, self.col = _pack_instances(mean2d, conic, opacity, depth, color, bins.gaussian, cfg.alpha_min,
+                                             bins.n_blended)
         img, self.T_lane, self.last_lane, stats.forward_evaluations = blend_forward(self.geo, self.col, bins,
                                                                                     frame, cfg)
         return tuple(img)
