@@ -178,6 +178,9 @@ if [ "$part" = issue53 ]; then
     for f in train_gsplat train_ours render train_ours_classes step_profile layouts; do
         echo "== $f"; grep -E '^\| [0-9a-zA-Z]|rror' "$OUT/$f.md" 2>/dev/null | tail -n 14
     done
+    # (where our run's time went besides the steps: refinements, recordings, kernels compiled)
+    echo "== ours: loop"; python3 -c "import json, sys; print(json.load(open(sys.argv[1]))['loop'])" \
+        "$OUT/ours_metrics.json" 2>&1 | tail -n 2
     exit 0
 fi
 
