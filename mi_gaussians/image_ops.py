@@ -29,9 +29,11 @@ consecutive cache lines; horizontal walks read either layout and write the natur
 
 - forward: horizontal walk over x, y (natural) -> the five blurs' first pass (tiled, interleaved), and the L1 sum of
   the fused training loss; vertical walk -> SSIM map sums (and the map), plus the derivative maps when gradients are
-  needed (tiled).
-- backward: vertical walk over the derivative maps, then a horizontal walk that combines them with x and y into
-  ``dL/dx`` (and ``dL/dy``) and adds the L1 term ``sign(x - y)`` of the fused loss.
+  needed (tiled). For the loss (a uniform incoming gradient, which only scales them) that walk also blurs the
+  derivative maps down the columns (``image_walk._sweep_twice``), so they are never stored unblurred.
+- backward: vertical walk over the derivative maps (the SSIM map's, whose incoming gradient weighs each pixel), then
+  a horizontal walk that combines them with x and y into ``dL/dx`` (and ``dL/dy``) and adds the L1 term
+  ``sign(x - y)`` of the fused loss.
 
 The image size, window weights and C1/C2 are kernel literals (one compilation per resolution and window, ~0.2 s);
 everything that depends on the images, including the incoming gradient and the loss weights, flows through arrays, so
@@ -39,7 +41,9 @@ calls on other images of the same size reuse the compiled kernels.
 
 Measured (llvm_ad_rgb, 2-core AVX-512 CPU, 800 x 800 x 3): the training loss (``weighted_l1_ssim``, as
 ``mi_gaussians.optim.losses.photometric_loss`` calls it) forward + backward 21 ms (best) to 27 ms (median), of which
-19 ms in four kernels; SSIM alone without gradients 10 ms.
+19 ms in four kernels; SSIM alone without gradients 10 ms. Since its vertical walks are one (2026-11-30): 15-16 ms in
+three kernels against 17-18.5 for the four (400 x 400: 3.3-3.5 against 3.8-4.2 ms; 200 x 200: 1.1 against 1.3), the
+same gradients bit for bit and the loss up to the order of its sum.
 """
 
 from __future__ import annotations
@@ -51,7 +55,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .drjit_utils import flat_mean
-from .image_walk import _identity, _opaque, _Planes, _store, _sweep
+from .image_walk import _identity, _opaque, _Planes, _store, _sweep, _sweep_twice
 
 @dataclass(frozen=True)
 class SSIMParams:
@@ -159,6 +163,20 @@ def _forward(x, y, shape, weights, c1: float, c2: float, *, want_l1: bool = Fals
 
     l1_sum = _sweep([_Planes(x, "natural"), _Planes(y, "natural")], shape, 1, weights,
                     lambda a, b: (a, b, a * a, b * b, a * b), finish_h, [h], int(want_l1))
+    if coef_layout == "blurred" and coefs:
+        # the derivative maps blurred down the columns in the same walk, never stored unblurred (the first half of
+        # the backward, done here: the loss's incoming gradient only scales them, in the backward's last walk)
+        outs = [_Planes.empty(Float, shape, "tiled", len(coefs))]
+
+        def finish_twice(blurred, centre, yy, pp, ok):
+            s, cv = _ssim_terms(blurred, c1, c2, list(coefs))
+            return cv, [s]
+
+        (ssim_sum,) = _sweep_twice([h], shape, weights, _identity, finish_twice, outs, 1)
+        out = {"ssim_sum": ssim_sum, "coef": outs}
+        if want_l1:
+            out["l1_sum"] = l1_sum[0]
+        return out
     outs = [_Planes.empty(Float, shape, "natural")] if want_map else []
     if coefs:
         if coef_layout == "tiled":
@@ -182,16 +200,20 @@ def _forward(x, y, shape, weights, c1: float, c2: float, *, want_l1: bool = Fals
 
 
 def _backward(x, y, coef: list, coef_ids: tuple, shape, weights, s_scale, l1_scale, need_img: bool,
-              need_ref: bool):
+              need_ref: bool, blurred: bool = False):
     """(dL/dx, dL/dy) (flat natural, None where not needed): blur the derivative maps ``coef`` (list of _Planes
-    holding the maps ``coef_ids`` in order) vertically, then horizontally combined with x and y::
+    holding the maps ``coef_ids`` in order) vertically (unless ``blurred``: they were, in the forward's walk), then
+    horizontally combined with x and y::
 
         dL/dx = s_scale (G*c_mu1 + 2 x G*c_sq + y G*c_xy) + l1_scale sign(x - y)     (l1_scale may be None)
         dL/dy = s_scale (G*c_mu2 + 2 y G*c_sq + x G*c_xy) - l1_scale sign(x - y)"""
     Float = type(x)
     n = len(coef_ids)
-    v = _Planes.empty(Float, shape, "tiled", n)
-    _sweep(coef, shape, 0, weights, _identity, _store, [v])
+    if blurred:
+        (v,) = coef
+    else:
+        v = _Planes.empty(Float, shape, "tiled", n)
+        _sweep(coef, shape, 0, weights, _identity, _store, [v])
 
     def finish(b, centre, yy, pp, ok):
         d = dict(zip(coef_ids, b))
@@ -242,7 +264,7 @@ class _LossOp(_TwoImageOp):
         self.a, self.b, self.need_img, self.need_ref = a, b, need_img, need_ref
         self.inv_n = 1.0 / (shape[0] * shape[1] * shape[2])
         self.coef_ids = tuple(_needed_coefs(need_img, need_ref))
-        r = _forward(x, y, shape, weights, c1, c2, want_l1=a != 0.0, coefs=self.coef_ids)
+        r = _forward(x, y, shape, weights, c1, c2, want_l1=a != 0.0, coefs=self.coef_ids, coef_layout="blurred")
         self.coef = r["coef"]
         return _combine(type(x), r, a, b, c, self.inv_n)
 
@@ -259,7 +281,7 @@ class _LossOp(_TwoImageOp):
             l1_scale = g * _opaque(Float, self.a * self.inv_n)
             dr.make_opaque(l1_scale)
         return _backward(self.x, self.y, self.coef, self.coef_ids, self.shape, self.weights, s_scale, l1_scale,
-                         self.need_img, self.need_ref)
+                         self.need_img, self.need_ref, blurred=True)
 
     def forward(self):
         gi, gr = self._grads(1.0)

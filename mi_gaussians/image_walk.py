@@ -2,7 +2,8 @@
 along one line of an image (down a column, or along a row) over a block of pixels, keeping the last ``window - 1``
 samples in the state of a symbolic ``dr.while_loop`` (one load per sample instead of ``window``), and the image
 layouts it reads and writes (``_Planes``: natural, or tiled for a vertical walk, see there). What is blurred and what
-is made of the blurs (SSIM, its derivative maps) is the caller's: ``tap_fn`` and ``finish_fn``.
+is made of the blurs (SSIM, its derivative maps) is the caller's: ``tap_fn`` and ``finish_fn``. :func:`_sweep_twice`
+is a vertical walk that blurs what it makes of its blurs again, in the same kernel.
 
 Base layer: imports nothing of the package.
 """
@@ -13,6 +14,9 @@ import drjit as dr
 
 _BLOCK_Y = 64     # pixels per lane in a vertical walk   (tuned at 800 x 800 on a 2-core AVX-512 CPU)
 _BLOCK_X = 128    # pixels per lane in a horizontal walk
+_BLOCK_TWICE = 512   # rows per lane in a vertical walk that blurs twice (_sweep_twice), whose lanes start 4 R rows
+                     # early: at 200, 400 and 800 pixels square its SSIM loss + gradient took 0.82-0.89x the two
+                     # walks' kernel time with 512, 0.91-0.94x with 64 (2-core AVX-512 CPU, 2026-11-30)
 _BLOCK_GPU = 16   # both, on CUDA: more, shorter lanes (a GPU needs ~10^5 threads in flight; not tuned)
 _UNROLL = 4       # pixels per loop iteration
 _TILE_SHIFT = 4
@@ -136,6 +140,88 @@ def _sweep(srcs: list, shape: tuple, axis: int, weights: list, tap_fn, finish_fn
 
     state = dr.while_loop((Int(0), *window, *sums0), lambda j, *_: j < block, body, label="ssim_blur")
     sums = list(state[1 + len(window):])
+    if sums:
+        dr.eval(sums)                            # with the outputs, in the walk's kernel
+    return [dr.sum(s) for s in sums]
+
+
+def _sweep_twice(srcs: list, shape: tuple, weights: list, tap_fn, finish_fn, outs: list, n_sums: int = 0):
+    """Two vertical blur walks in one kernel: blur ``tap_fn``'s quantities down the columns, make values of each
+    blurred sample with ``finish_fn`` and blur those down the columns too, without storing them between the two.
+
+    Per row, ``finish_fn(blurred, centre sample values, y, p, valid)`` returns (the values to blur again, zero outside
+    the image as the second blur's zero padding wants; ``n_sums`` terms to sum over the image's rows). ``outs``: the
+    ``_Planes`` receiving the second blur, in order. Returns the ``n_sums`` totals (Float (1,) each). The results are
+    those of :func:`_sweep` on ``srcs`` with ``finish_fn`` writing its values to planes, then of :func:`_sweep` on
+    those planes with :func:`_store` (the same samples, summed in the same order), without the planes' writes and
+    reads in between (the SSIM derivative maps of a training loss)."""
+    Float = type(srcs[0].data)
+    Int, UInt = dr.int32_array_t(Float), dr.uint32_array_t(Float)
+    H, W, C = shape
+    R = len(weights) // 2
+    length = H
+    unroll = min(_UNROLL, length)
+    block = _BLOCK_GPU if dr.backend_v(Float) == dr.JitBackend.CUDA else _BLOCK_TWICE
+    block = -(-length // -(-length // block))     # the blocks share the line evenly: the last is not mostly padding
+    block = -(-block // unroll) * unroll
+    n_lines = -(-W * C // _TILE) * _TILE
+    n_blocks = -(-length // block)
+    lane = dr.arange(UInt, n_blocks * n_lines)
+    line = Int(lane % n_lines)
+    p0 = Int(lane // n_lines) * block
+    line_ok = line < W * C
+
+    def valid(pos):
+        return (pos >= 0) & (pos < length) & line_ok
+
+    def gather(pos):
+        ok = valid(pos)
+        vals = []
+        for s in srcs:
+            vals.extend(dr.gather(Float, s.data, i, ok) for i in s.indices(shape, pos, line, UInt))
+        return vals
+
+    # the first blur's rows r = p0 - R + j for j in [0, steps): the second blur's rows q = r - R, from j = 2R on
+    steps = -(-(block + 2 * R) // unroll) * unroll
+    first = gather(p0 - 2 * R)
+    ns = len(first)
+    window = list(first)
+    for k in range(1, 2 * R):
+        window.extend(gather(p0 - 2 * R + k))
+    n_mid = sum(o.count for o in outs)
+    mids0 = [dr.zeros(Float, n_blocks * n_lines) for _ in range(2 * R * n_mid)]
+    sums0 = [dr.zeros(Float, n_blocks * n_lines) for _ in range(n_sums)]
+
+    def body(j, *state):
+        win = list(state[:2 * R * ns])
+        mids = list(state[2 * R * ns:2 * R * (ns + n_mid)])
+        sums = list(state[2 * R * (ns + n_mid):])
+        for u in range(unroll):
+            r = p0 - R + j + u
+            win.extend(gather(r + R))
+            samples = [win[k * ns:(k + 1) * ns] for k in range(2 * R + 1)]
+            taps = [tap_fn(*smp) for smp in samples]
+            blurred = [_pair_blur(taps, weights, m) for m in range(len(taps[0]))]
+            ok = valid(r)
+            values, terms = finish_fn(blurred, samples[R], r, line, ok)
+            mids.extend(dr.select(ok, v, 0.0) for v in values)
+            own = ok & (r >= p0) & (r < p0 + block)           # (each row's terms counted by one block)
+            sums = [a + dr.select(own, t, 0.0) for a, t in zip(sums, terms)]
+            q = r - R
+            rows = [mids[k * n_mid:(k + 1) * n_mid] for k in range(2 * R + 1)]
+            second = [_pair_blur(rows, weights, m) for m in range(n_mid)]
+            write = valid(q) & (q >= p0) & (q < p0 + block)
+            second = iter(second)
+            for o in outs:
+                for i in o.indices(shape, q, line, UInt):
+                    dr.scatter(o.data, next(second), i, write)
+            win = win[ns:]
+            mids = mids[n_mid:]
+        return (j + unroll, *win, *mids, *sums)
+
+    state = dr.while_loop((Int(0), *window, *mids0, *sums0), lambda j, *_: j < steps, body,
+                          label="ssim_blur_twice")
+    sums = list(state[1 + len(window) + len(mids0):])
     if sums:
         dr.eval(sums)                            # with the outputs, in the walk's kernel
     return [dr.sum(s) for s in sums]

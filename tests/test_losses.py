@@ -350,3 +350,29 @@ def test_short_blocks(monkeypatch):
     v1, g1 = run()
     assert abs(v0 - loss_ref(a, b, 0.2)) < 1e-6 and abs(v1 - v0) < 1e-6
     np.testing.assert_allclose(g1, g0, rtol=1e-5, atol=1e-10)
+
+
+@pytest.mark.parametrize("shape", [(64, 61, 3), (37, 53, 2), (8, 9, 3), (1, 5, 3), (130, 7, 1), (600, 6, 3)])
+def test_the_loss_walk_that_blurs_twice_gives_the_two_walks_gradients_bit_for_bit(shape):
+    """The training loss blurs its SSIM derivative maps down the columns in its forward walk
+    (``image_walk._sweep_twice``); the SSIM map's backward blurs them in a walk of their own. Both give the same
+    gradients, bit for bit, on images shorter than the window, taller than a walk's block and of any channel count."""
+    rng = np.random.default_rng(sum(shape))
+    a = rng.uniform(size=shape).astype(np.float32)
+    b = np.clip(a + rng.normal(0, 0.1, shape), 0, 1).astype(np.float32)
+    x, y = owned_tensor(a), owned_tensor(b)
+    weights = image_ops.gaussian_window()
+    c1, c2 = image_ops.REFERENCE_SSIM.c1, image_ops.REFERENCE_SSIM.c2
+    ids = tuple(image_ops._needed_coefs(True, True))
+    shape3 = tuple(shape)
+    grads, sums = {}, {}
+    for layout in ("blurred", "tiled"):
+        r = image_ops._forward(x.array, y.array, shape3, weights, c1, c2, want_l1=True, coefs=ids, coef_layout=layout)
+        scale = dr.opaque(mi.Float, 0.37)
+        gi, gr = image_ops._backward(x.array, y.array, r["coef"], ids, shape3, weights, scale, scale * 0.5, True, True,
+                                     blurred=layout == "blurred")
+        grads[layout] = (np.array(gi), np.array(gr))
+        sums[layout] = (float(r["ssim_sum"][0]), float(r["l1_sum"][0]))
+    for u, v in zip(grads["blurred"], grads["tiled"]):
+        assert np.array_equal(u, v)
+    np.testing.assert_allclose(sums["blurred"], sums["tiled"], rtol=1e-6)
