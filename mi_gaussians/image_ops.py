@@ -29,8 +29,8 @@ consecutive cache lines; horizontal walks read either layout and write the natur
 
 - forward: horizontal walk over x, y (natural) -> the five blurs' first pass (tiled, interleaved), and the L1 sum of
   the fused training loss; vertical walk -> SSIM map sums (and the map), plus the derivative maps when gradients are
-  needed (tiled). For the loss (a uniform incoming gradient, which only scales them) that walk also blurs the
-  derivative maps down the columns (``image_walk._sweep_twice``), so they are never stored unblurred.
+  needed (tiled). For the loss (a uniform incoming gradient, which only scales them) on the CPU that walk also blurs
+  the derivative maps down the columns (``image_walk._sweep_twice``), so they are never stored unblurred.
 - backward: vertical walk over the derivative maps (the SSIM map's, whose incoming gradient weighs each pixel), then
   a horizontal walk that combines them with x and y into ``dL/dx`` (and ``dL/dy``) and adds the L1 term
   ``sign(x - y)`` of the fused loss.
@@ -264,7 +264,11 @@ class _LossOp(_TwoImageOp):
         self.a, self.b, self.need_img, self.need_ref = a, b, need_img, need_ref
         self.inv_n = 1.0 / (shape[0] * shape[1] * shape[2])
         self.coef_ids = tuple(_needed_coefs(need_img, need_ref))
-        r = _forward(x, y, shape, weights, c1, c2, want_l1=a != 0.0, coefs=self.coef_ids, coef_layout="blurred")
+        # (the walk that blurs twice on the CPU, where it was measured; a GPU's walks are short, so there its lanes'
+        # 4 R extra rows would cost more: not yet measured, the two walks stay)
+        self.blurred = dr.backend_v(x) == dr.JitBackend.LLVM
+        r = _forward(x, y, shape, weights, c1, c2, want_l1=a != 0.0, coefs=self.coef_ids,
+                     coef_layout="blurred" if self.blurred else "tiled")
         self.coef = r["coef"]
         return _combine(type(x), r, a, b, c, self.inv_n)
 
@@ -281,7 +285,7 @@ class _LossOp(_TwoImageOp):
             l1_scale = g * _opaque(Float, self.a * self.inv_n)
             dr.make_opaque(l1_scale)
         return _backward(self.x, self.y, self.coef, self.coef_ids, self.shape, self.weights, s_scale, l1_scale,
-                         self.need_img, self.need_ref, blurred=True)
+                         self.need_img, self.need_ref, blurred=self.blurred)
 
     def forward(self):
         gi, gr = self._grads(1.0)
