@@ -64,60 +64,70 @@ def _opaque(Float, v):
     return a
 
 
-def _sweep(srcs: list, shape: tuple, axis: int, weights: list, tap_fn, finish_fn, outs: list, n_sums: int = 0):
-    """One blur walk along ``axis`` (0: down the columns, 1: along the rows), zero outside the image.
-
-    ``srcs``: list of ``_Planes``; per sample, ``tap_fn(*values)`` (all the planes' values, in order) gives the
-    quantities to blur. Per output pixel, ``finish_fn(blurred, centre sample values, y, p, valid)`` returns (values for
-    the planes of ``outs``, in order, and ``n_sums`` terms to sum). Returns the ``n_sums`` totals (Float (1,) each).
+class _Lanes:
+    """The lanes of a walk along ``axis`` (0: down the columns, 1: along the rows) over blocks of ``block`` pixels
+    (the backend's, unless given), and their reads of ``srcs`` (zero outside the image).
 
     Lanes: axis 0: (block, p) with p = x C + c fastest, padded to whole tiles (a SIMD packet shares a tile column);
     axis 1: (block, y, c) with c fastest."""
-    Float = type(srcs[0].data)
-    Int, UInt = dr.int32_array_t(Float), dr.uint32_array_t(Float)
-    H, W, C = shape
-    R = len(weights) // 2
-    length = H if axis == 0 else W
-    unroll = min(_UNROLL, length)
-    if dr.backend_v(Float) == dr.JitBackend.CUDA:
-        block = _BLOCK_GPU
-    else:
-        block = _BLOCK_Y if axis == 0 else _BLOCK_X
-    block = -(-length // -(-length // block))     # the blocks share the line evenly: the last is not mostly padding
-    block = -(-block // unroll) * unroll
-    n_lines = -(-W * C // _TILE) * _TILE if axis == 0 else H * C
-    n_blocks = -(-length // block)
-    lane = dr.arange(UInt, n_blocks * n_lines)
-    line = Int(lane % n_lines)
-    p0 = Int(lane // n_lines) * block
-    if axis == 0:
-        line_ok = line < W * C
 
-        def coords(pos):
-            return pos, line
-    else:
-        line_ok = True
-        y_line, c_line = line // C, line % C
+    def __init__(self, srcs: list, shape: tuple, axis: int, block: int | None = None):
+        Float = type(srcs[0].data)
+        self.Float, self.srcs, self.shape = Float, srcs, shape
+        Int, self.UInt = dr.int32_array_t(Float), dr.uint32_array_t(Float)
+        H, W, C = shape
+        self.length = length = H if axis == 0 else W
+        self.unroll = unroll = min(_UNROLL, length)
+        if dr.backend_v(Float) == dr.JitBackend.CUDA:
+            block = _BLOCK_GPU
+        elif block is None:
+            block = _BLOCK_Y if axis == 0 else _BLOCK_X
+        block = -(-length // -(-length // block))     # the blocks share the line evenly: the last is not mostly padding
+        self.block = block = -(-block // unroll) * unroll
+        n_lines = -(-W * C // _TILE) * _TILE if axis == 0 else H * C
+        self.n = -(-length // block) * n_lines
+        lane = dr.arange(self.UInt, self.n)
+        line = Int(lane % n_lines)
+        self.p0 = Int(lane // n_lines) * block
+        if axis == 0:
+            self.line_ok = line < W * C
+            self.coords = lambda pos: (pos, line)
+        else:
+            self.line_ok = True
+            y_line, c_line = line // C, line % C
+            self.coords = lambda pos: (y_line, pos * C + c_line)
 
-        def coords(pos):
-            return y_line, pos * C + c_line
+    def valid(self, pos):
+        return (pos >= 0) & (pos < self.length) & self.line_ok
 
-    def valid(pos):
-        return (pos >= 0) & (pos < length) & line_ok
-
-    def gather(pos):
-        ok, (yy, pp) = valid(pos), coords(pos)
+    def gather(self, pos) -> list:
+        """All the sources' values at position ``pos`` of each lane's line."""
+        ok, (yy, pp) = self.valid(pos), self.coords(pos)
         vals = []
-        for s in srcs:
-            vals.extend(dr.gather(Float, s.data, i, ok) for i in s.indices(shape, yy, pp, UInt))
+        for s in self.srcs:
+            vals.extend(dr.gather(self.Float, s.data, i, ok) for i in s.indices(self.shape, yy, pp, self.UInt))
         return vals
+
+
+def _sweep(srcs: list, shape: tuple, axis: int, weights: list, tap_fn, finish_fn, outs: list, n_sums: int = 0):
+    """One blur walk along ``axis`` (0: down the columns, 1: along the rows; lanes: :class:`_Lanes`), zero outside
+    the image.
+
+    ``srcs``: list of ``_Planes``; per sample, ``tap_fn(*values)`` (all the planes' values, in order) gives the
+    quantities to blur. Per output pixel, ``finish_fn(blurred, centre sample values, y, p, valid)`` returns (values for
+    the planes of ``outs``, in order, and ``n_sums`` terms to sum). Returns the ``n_sums`` totals (Float (1,) each)."""
+    lanes = _Lanes(srcs, shape, axis)
+    Float, UInt, unroll, block, p0 = lanes.Float, lanes.UInt, lanes.unroll, lanes.block, lanes.p0
+    Int = dr.int32_array_t(Float)
+    R = len(weights) // 2
+    valid, coords, gather = lanes.valid, lanes.coords, lanes.gather
 
     first = gather(p0 - R)
     ns = len(first)
     window = list(first)
     for k in range(1, 2 * R):
         window.extend(gather(p0 + (k - R)))
-    sums0 = [dr.zeros(Float, n_blocks * n_lines) for _ in range(n_sums)]
+    sums0 = [dr.zeros(Float, lanes.n) for _ in range(n_sums)]
 
     def body(j, *state):
         win = list(state[:2 * R * ns])
@@ -155,31 +165,12 @@ def _sweep_twice(srcs: list, shape: tuple, weights: list, tap_fn, finish_fn, out
     those of :func:`_sweep` on ``srcs`` with ``finish_fn`` writing its values to planes, then of :func:`_sweep` on
     those planes with :func:`_store` (the same samples, summed in the same order), without the planes' writes and
     reads in between (the SSIM derivative maps of a training loss)."""
-    Float = type(srcs[0].data)
-    Int, UInt = dr.int32_array_t(Float), dr.uint32_array_t(Float)
-    H, W, C = shape
+    lanes = _Lanes(srcs, shape, 0, _BLOCK_TWICE)
+    Float, UInt, unroll, block, p0 = lanes.Float, lanes.UInt, lanes.unroll, lanes.block, lanes.p0
+    Int = dr.int32_array_t(Float)
     R = len(weights) // 2
-    length = H
-    unroll = min(_UNROLL, length)
-    block = _BLOCK_GPU if dr.backend_v(Float) == dr.JitBackend.CUDA else _BLOCK_TWICE
-    block = -(-length // -(-length // block))     # the blocks share the line evenly: the last is not mostly padding
-    block = -(-block // unroll) * unroll
-    n_lines = -(-W * C // _TILE) * _TILE
-    n_blocks = -(-length // block)
-    lane = dr.arange(UInt, n_blocks * n_lines)
-    line = Int(lane % n_lines)
-    p0 = Int(lane // n_lines) * block
-    line_ok = line < W * C
-
-    def valid(pos):
-        return (pos >= 0) & (pos < length) & line_ok
-
-    def gather(pos):
-        ok = valid(pos)
-        vals = []
-        for s in srcs:
-            vals.extend(dr.gather(Float, s.data, i, ok) for i in s.indices(shape, pos, line, UInt))
-        return vals
+    valid, gather = lanes.valid, lanes.gather
+    line = lanes.coords(0)[1]
 
     # the first blur's rows r = p0 - R + j for j in [0, steps): the second blur's rows q = r - R, from j = 2R on
     steps = -(-(block + 2 * R) // unroll) * unroll
@@ -189,8 +180,8 @@ def _sweep_twice(srcs: list, shape: tuple, weights: list, tap_fn, finish_fn, out
     for k in range(1, 2 * R):
         window.extend(gather(p0 - 2 * R + k))
     n_mid = sum(o.count for o in outs)
-    mids0 = [dr.zeros(Float, n_blocks * n_lines) for _ in range(2 * R * n_mid)]
-    sums0 = [dr.zeros(Float, n_blocks * n_lines) for _ in range(n_sums)]
+    mids0 = [dr.zeros(Float, lanes.n) for _ in range(2 * R * n_mid)]
+    sums0 = [dr.zeros(Float, lanes.n) for _ in range(n_sums)]
 
     def body(j, *state):
         win = list(state[:2 * R * ns])
