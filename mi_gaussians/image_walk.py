@@ -15,8 +15,8 @@ import drjit as dr
 _BLOCK_Y = 64     # pixels per lane in a vertical walk   (tuned at 800 x 800 on a 2-core AVX-512 CPU)
 _BLOCK_X = 128    # pixels per lane in a horizontal walk
 _BLOCK_TWICE = 512   # rows per lane in a vertical walk that blurs twice (_sweep_twice), whose lanes start 4 R rows
-                     # early: at 200, 400 and 800 pixels square its SSIM loss + gradient took 0.82-0.89x the two
-                     # walks' kernel time with 512, 0.91-0.94x with 64 (2-core AVX-512 CPU, 2026-11-30)
+                     # early: at 200, 400 and 800 pixels square its SSIM loss + gradient took 0.79-0.89x the two
+                     # walks' kernel time with 512, 0.90-0.94x with 64 (2-core AVX-512 CPU, 2026-11-30)
 _BLOCK_GPU = 16   # both, on CUDA: more, shorter lanes (a GPU needs ~10^5 threads in flight; not tuned)
 _UNROLL = 4       # pixels per loop iteration
 _TILE_SHIFT = 4
