@@ -333,7 +333,9 @@ LAYOUTS = {**LANE_LAYOUTS, "one_pixel": LaneLayout(pixels=1, start_lanes=256),
            "one_row": LaneLayout(pixels=1, start_lanes=4, tile_rows=1),
            "eight_by_eight_four_pixels": LaneLayout(pixels=4, start_lanes=16, tile_rows=8, tile_cols=8),
            "four_columns": LaneLayout(pixels=8, start_lanes=4, tile_rows=8, tile_cols=4),
-           "one_column": LaneLayout(pixels=2, start_lanes=2, tile_rows=4, tile_cols=1)}
+           "one_column": LaneLayout(pixels=2, start_lanes=2, tile_rows=4, tile_cols=1),
+           "image_order": LaneLayout(pixels=8, start_lanes=8, tile_rows=8, tile_cols=8),
+           "by_work_sixteen": LaneLayout(pixels=4, start_lanes=16, tile_rows=16, by_work=True)}
 
 
 @pytest.fixture(params=sorted(LAYOUTS))
@@ -376,6 +378,55 @@ def test_lane_layouts_agree_with_each_other():
         for k in NAMES:
             scale = max(np.abs(base_grads[k]).max(), 1e-6)
             np.testing.assert_allclose(grads[k], base_grads[k], rtol=0, atol=1e-5 * scale, err_msg=f"{name} {k}")
+
+
+@pytest.mark.parametrize("threads", [None, 1, 3])
+def test_tiles_ordered_by_work_keep_their_bands_longest_list_first(threads):
+    """``LaneLayout.by_work`` (the CPU's): every tile in one slot, the other slots padding (``n_tiles``); the tiles of
+    a band of BAND_ROWS tile rows in a contiguous run of slots, in decreasing order of their lists' lengths (to the
+    order's resolution, 1/8 of a doubling), equal levels in image order; with up to two blocks per thread (Dr.Jit's
+    LLVM backend cuts a kernel into 2 per thread, padded here to equal lengths), band b in block b % blocks."""
+    import mitsuba as mi
+
+    from mi_gaussians.raster.binning import Bins
+    from mi_gaussians.raster.blend import BAND_ROWS, tile_slots
+
+    rng = np.random.default_rng(5)
+    tiles_x, tiles_y = 13, 9                       # (a partial last band)
+    n = tiles_x * tiles_y
+    lengths = rng.integers(0, 3000, n)
+    lengths[rng.random(n) < 0.3] = 0
+    lengths[:4] = 200                              # (equal lengths in one band)
+    bins = Bins(gaussian=dr.zeros(mi.UInt32, 1), tile_start=mi.UInt32(np.concatenate([[0], np.cumsum(lengths)])),
+                n_instances=int(lengths.sum()), tiles_x=tiles_x, tiles_y=tiles_y)
+    before = dr.thread_count()
+    try:
+        if threads:
+            dr.set_thread_count(threads)
+        cores = dr.thread_count()
+        slots = tile_slots(bins, LANE_LAYOUTS["llvm"]).numpy()
+    finally:
+        dr.set_thread_count(before)
+    assert LANE_LAYOUTS["llvm"].by_work
+    real = slots < n
+    assert sorted(slots[real]) == list(range(n)) and (slots[~real] == n).all()
+    band_tiles = tiles_x * BAND_ROWS
+    blocks = 2 * cores if cores > 1 else 1
+    assert len(slots) % blocks == 0
+    for band in range(-(-tiles_y // BAND_ROWS)):
+        pos = np.flatnonzero(real & (slots // band_tiles == band))
+        assert len(pos) == min(band_tiles, n - band * band_tiles)
+        assert pos[-1] - pos[0] + 1 == len(pos), f"band {band} is not one run of slots"
+        if blocks > 1:
+            assert pos[0] // (len(slots) // blocks) == band % blocks
+        run = lengths[slots[pos]]
+        assert (run[1:] < (run[:-1] + 1) * 2 ** (1 / 8)).all(), f"band {band}: {run}"
+        equal = run[1:] == run[:-1]
+        assert (slots[pos][1:][equal] > slots[pos][:-1][equal]).all()
+    # without by_work, the image's order, which the order test above fails on these lengths
+    plain = tile_slots(bins, LaneLayout(pixels=8, start_lanes=8, tile_rows=8, tile_cols=8)).numpy()
+    assert (plain == np.arange(n)).all()
+    assert not (lengths[1:band_tiles] < (lengths[:band_tiles - 1] + 1) * 2 ** (1 / 8)).all()
 
 
 def test_lane_layout_rejects_what_the_kernels_cannot_map():

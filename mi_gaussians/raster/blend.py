@@ -36,7 +36,7 @@ import mitsuba as mi
 
 from ..config import RasterConfig
 from ..drjit_utils import fmin
-from .binning import Bins
+from .binning import Bins, stable_bucket_perm
 
 TILE = 16
 GEO = 8      # packed geometry per Gaussian and per instance: mx, my, log2(e) (-a/2, -b, -c/2) of the conic
@@ -52,12 +52,15 @@ class LaneLayout:
     two dividing ``tile_rows``; more pixels share a lane's gathers and its one gradient scatter per Gaussian, at the
     price of registers; a tile's lanes take its columns first, then its bands of ``pixels`` rows), and the backward
     pass's lanes starting together in groups of ``start_lanes`` (a power of two dividing the lanes of a tile; a SIMD
-    packet's worth or more keeps a packet's lanes on the same instance). The layout changes the speed, not the
-    result: the footprint that bins a Gaussian does not depend on the tile grid (:mod:`.footprint`)."""
+    packet's worth or more keeps a packet's lanes on the same instance), and with ``by_work`` the tiles taken in an
+    order that gives the tiles sharing a SIMD packet lists of about equal length (:func:`tile_slots`; for packets
+    of more than one tile). The layout changes the speed, not the result: the footprint that bins a Gaussian does
+    not depend on the tile grid (:mod:`.footprint`)."""
     pixels: int
     start_lanes: int
     tile_rows: int = TILE
     tile_cols: int = TILE
+    by_work: bool = False
 
     def __post_init__(self):
         powers = {1, 2, 4, 8, 16, 32, 64, 128, 256}
@@ -100,9 +103,12 @@ class LaneLayout:
 # Gaussians), 0.92-0.94x on them rendered at twice their size, 0.98-1.02x at four times, 0.92x on 100k synthetic
 # Gaussians at 800x800, 1.09x on 500k and 1.29x on 1M at 1600x1600 (Gaussians about 36 pixels wide: the instances
 # grow more than the blend shrinks). 4 x 8 tiles gain more on the trained models and lose 7-12 % at four times their
-# size. CUDA's default is the layout measured on the H100 (a warp of 32 lanes: 4 pixels, the 16 x 16 tile's 64 lanes
-# starting together); training chooses among CUDA_LAYOUTS by the tiles' load (below).
-LANE_LAYOUTS = {"llvm": LaneLayout(pixels=8, start_lanes=8, tile_rows=8, tile_cols=8),
+# size. Its two tiles to a packet are paired by their lists' lengths within bands of tile rows (``by_work``,
+# :func:`tile_slots`): render + backward, binning included, 0.84-0.95x on six trained models (100x100 to 400x400), 1.00x
+# on 100k synthetic Gaussians at 800x800, 1.01x on 1M at 1600x1600; the frozen training step 0.93x on mi_objects/colmap
+# and the 400x400 table. CUDA's default is the layout measured on the H100 (a warp of 32 lanes: 4 pixels, the
+# 16 x 16 tile's 64 lanes starting together); training chooses among CUDA_LAYOUTS by the tiles' load (below).
+LANE_LAYOUTS = {"llvm": LaneLayout(pixels=8, start_lanes=8, tile_rows=8, tile_cols=8, by_work=True),
                 "cuda": LaneLayout(pixels=4, start_lanes=64)}
 
 
@@ -237,13 +243,67 @@ def _pack_instances(mean2d, conic, opacity, depth, color, inst, alpha_min: float
     return geo, col
 
 
-def _lane_pixels(frame: Frame, n_lanes: int):
-    """Tile, pixel coordinates (centres) and validity of the pixels of every lane."""
+#: :attr:`LaneLayout.by_work`: the bands of tile rows within which tiles are ordered by their lists' lengths, and the
+#: length levels told apart (8 per doubling, lists up to 2^16 instances long)
+BAND_ROWS = 2
+LENGTH_LEVELS = 128
+
+
+def _llvm_blocks(lanes: int) -> int:
+    """How many blocks Dr.Jit's LLVM backend cuts a kernel of ``lanes`` lanes into, which its threads take as they
+    come (drjit-core's ``llvm_ts.cpp``: two per thread up to 2 x 16,384 lanes per thread, then blocks of 16,384)."""
+    cores = dr.thread_count()
+    if cores <= 1:
+        return 1
+    if lanes <= 16384 * cores * 2:
+        return 2 * cores
+    return -(-lanes // 16384)
+
+
+def tile_slots(bins: Bins, layout: LaneLayout) -> "mi.UInt32":
+    """The tile that each slot of ``layout.lanes_per_tile`` lanes blends, in the forward and the backward pass
+    (``bins.n_tiles``: none, a padding slot). The image's tiles in order; with ``layout.by_work``:
+
+    - within each band of :data:`BAND_ROWS` tile rows, the tiles by decreasing length of their lists, so that the
+      tiles sharing a SIMD packet (neighbouring slots) walk lists of about equal length: a packet loops until its
+      longest tile is done (on trained models the tiles of a packet in image order walked 1.2 times the mean);
+    - the bands dealt in turn to the blocks Dr.Jit's LLVM backend cuts a kernel into (:func:`_llvm_blocks`), each
+      block a contiguous run of slots, padded to equal length, so that the blocks -- the threads' shares -- hold
+      like parts of the image, not one its middle and another its empty top (with more than two blocks per thread,
+      which the threads take as they come, the bands stay in order).
+
+    A band keeps together the tiles whose Gaussians share cache lines: sorting the whole image at once (and dealing
+    the tiles to the blocks in turn) cost 5-8 % on synthetic scenes, whose tiles are alike. Images are the same bit
+    for bit; gradients are summed in another order."""
+    n_tiles = bins.n_tiles
+    t = dr.arange(mi.UInt32, n_tiles)
+    if not layout.by_work:
+        return t
+    length = dr.gather(mi.UInt32, bins.tile_start, t + 1) - dr.gather(mi.UInt32, bins.tile_start, t)
+    level = dr.minimum(mi.UInt32(8.0 * dr.log2(mi.Float(length) + 1.0)), LENGTH_LEVELS - 1)
+    band_tiles = bins.tiles_x * BAND_ROWS
+    n_bands = -(-bins.tiles_y // BAND_ROWS)
+    key = (t // band_tiles) * LENGTH_LEVELS + ((LENGTH_LEVELS - 1) - level)
+    dr.eval(key)
+    order = stable_bucket_perm(key, n_bands * LENGTH_LEVELS)    # band by band, each by decreasing length
+    lanes = n_tiles * layout.lanes_per_tile
+    blocks = _llvm_blocks(lanes)
+    if blocks == 1 or blocks > 2 * dr.thread_count():
+        return order
+    bands_per_block = -(-n_bands // blocks)
+    per = -(-(bands_per_block * band_tiles) // 4) * 4     # slots per block: whole bands, whole packets of <= 4 tiles
+    rank = dr.arange(mi.UInt32, n_tiles)
+    band = rank // band_tiles
+    slots = dr.full(mi.UInt32, n_tiles, blocks * per)
+    dr.scatter(slots, order, (band % blocks) * per + (band // blocks) * band_tiles + (rank - band * band_tiles))
+    return slots
+
+
+def _lane_pixels(frame: Frame, tile: "mi.UInt32", local: "mi.UInt32"):
+    """Pixel coordinates (centres), validity and image indices of the pixels of the lanes blending ``tile``
+    (``bins.n_tiles`` or more: none) as its ``local``-th lane."""
     layout = frame.layout
     P = layout.pixels
-    lane = dr.arange(mi.UInt32, n_lanes)
-    tile = lane >> layout.tile_shift
-    local = lane & (layout.lanes_per_tile - 1)
     tile_f = mi.Float(tile)
     ty = dr.floor((tile_f + 0.5) / frame.tiles_x_f)
     tx = tile_f - ty * frame.tiles_x_f
@@ -254,18 +314,23 @@ def _lane_pixels(frame: Frame, n_lanes: int):
     x_ok = x < frame.width_f
     valid = [x_ok & (y0 + k < frame.height_f) for k in range(P)]
     pix = [mi.UInt32(y0 + k) * mi.UInt32(frame.width_f) + mi.UInt32(x) for k in range(P)]
-    return lane, tile, px, pys, valid, pix
+    return px, pys, valid, pix
 
 
-def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cfg: RasterConfig):
+def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cfg: RasterConfig, slots=None):
     """``geo``, ``col``: the features packed per instance (:func:`_pack_instances`). Returns ([r, g, b, depth-sum,
     T] images (H*W each), lane-order T (lanes * pixels per lane), lane-order last index (the same), number of
     (pixel x Gaussian) evaluations (lazy UInt32))."""
-    P = frame.layout.pixels
-    n_lanes = bins.n_tiles * frame.layout.lanes_per_tile
-    lane, tile, px, pys, valid, pix = _lane_pixels(frame, n_lanes)
-    start = dr.gather(mi.UInt32, bins.tile_start, tile)
-    end = dr.gather(mi.UInt32, bins.tile_start, tile + 1)
+    layout = frame.layout
+    P = layout.pixels
+    slots = tile_slots(bins, layout) if slots is None else slots
+    n_lanes = dr.width(slots) * layout.lanes_per_tile
+    lane = dr.arange(mi.UInt32, n_lanes)
+    tile = dr.gather(mi.UInt32, slots, lane >> layout.tile_shift)
+    px, pys, valid, pix = _lane_pixels(frame, tile, lane & (layout.lanes_per_tile - 1))
+    real = tile < bins.n_tiles           # (padding slots: an empty list)
+    start = dr.gather(mi.UInt32, bins.tile_start, tile, active=real)
+    end = dr.gather(mi.UInt32, bins.tile_start, tile + 1, active=real)
     alpha_min, alpha_max, t_min = cfg.alpha_min, cfg.alpha_max, cfg.transmittance_min
 
     def cond(i, act, T, C, D, last):
@@ -330,23 +395,28 @@ def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cf
 
 
 def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane, last_lane, g_img: list, n: int,
-                   absgrad: bool = False):
+                   absgrad: bool = False, slots=None):
     """Gradients w.r.t. the Gaussians' features, from those packed per instance (``geo``, ``col``): (geo grads
     (N*8), colour grads (N*4), evaluations (lazy UInt32)).
 
     With ``absgrad`` the padding slots carry AbsGS's statistic: geo slot 7 the sum over pixels of |d L_pixel / d mx|,
     colour slot 3 that of |d L_pixel / d my| (gsplat's ``absgrad``)."""
-    P = frame.layout.pixels
-    n_lanes = bins.n_tiles * frame.layout.lanes_per_tile
-    lane, tile, px, pys, valid, pix = _lane_pixels(frame, n_lanes)
-    start = dr.gather(mi.UInt32, bins.tile_start, tile)
+    layout = frame.layout
+    P, lanes_per_tile = layout.pixels, layout.lanes_per_tile
+    slots = tile_slots(bins, layout) if slots is None else slots     # (the forward's: the state is per lane)
+    n_lanes = dr.width(slots) * lanes_per_tile
+    lane = dr.arange(mi.UInt32, n_lanes)
+    tile = dr.gather(mi.UInt32, slots, lane >> layout.tile_shift)
+    px, pys, valid, pix = _lane_pixels(frame, tile, lane & (lanes_per_tile - 1))
+    real = tile < bins.n_tiles           # (padding slots: an empty list)
+    start = dr.gather(mi.UInt32, bins.tile_start, tile, active=real)
     # every lane of a group starts at the group's largest last-contributor index
-    group = frame.layout.start_lanes
+    group = layout.start_lanes
     group_last = dr.block_reduce(dr.ReduceOp.Max, last_lane, group * P)
-    i0 = dr.gather(mi.UInt32, group_last, lane // group)
+    i0 = dr.gather(mi.UInt32, group_last, lane // group, active=real)
     ArrayXf, ArrayXu = _array_types()
-    Tf = dr.gather(ArrayXf, T_lane, lane, shape=(P, n_lanes))
-    last = dr.gather(ArrayXu, last_lane, lane, shape=(P, n_lanes))
+    Tf = dr.gather(ArrayXf, T_lane, lane, shape=(P, n_lanes), active=real)
+    last = dr.gather(ArrayXu, last_lane, lane, shape=(P, n_lanes), active=real)
     gpix, gT_times_T = [], []   # dL/d(r, g, b, depth sum), and dL/dT_final * T_final, per pixel
     for k in range(P):
         gpix.append(mi.Vector4f(*[dr.gather(mi.Float, g_img[c], pix[k], active=valid[k]) for c in range(4)]))
@@ -451,8 +521,9 @@ class BlendOp(dr.CustomOp):
         self.n = dr.width(opacity)
         self.geo, self.col = _pack_instances(mean2d, conic, opacity, depth, color, bins.gaussian, cfg.alpha_min,
                                              bins.n_blended)
+        self.slots = tile_slots(bins, frame.layout)
         img, self.T_lane, self.last_lane, stats.forward_evaluations = blend_forward(self.geo, self.col, bins,
-                                                                                    frame, cfg)
+                                                                                    frame, cfg, self.slots)
         return tuple(img)
 
     def forward(self):
@@ -468,7 +539,8 @@ class BlendOp(dr.CustomOp):
             # literal zero, which Dr.Jit's loop recording rejects as a state variable that changes on re-recording.
             g_img[0] = dr.opaque(mi.Float, 0.0, self.frame.width * self.frame.height)
         ggeo, gcol, self.stats.backward_evaluations = blend_backward(
-            self.geo, self.col, self.bins, self.frame, self.cfg, self.T_lane, self.last_lane, g_img, n, absgrad)
+            self.geo, self.col, self.bins, self.frame, self.cfg, self.T_lane, self.last_lane, g_img, n, absgrad,
+            self.slots)
         idx = dr.arange(mi.UInt32, n)
         gg = [dr.gather(mi.Float, ggeo, idx * GEO + k) for k in range(7)]
         gc = [dr.gather(mi.Float, gcol, idx * COL + k) for k in range(3)]
