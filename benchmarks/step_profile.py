@@ -49,7 +49,7 @@ def main(argv=None) -> int:
     import drjit as dr
 
     from mi_gaussians.optim.trainer import Trainer
-    from mi_gaussians.raster.blend import lane_layout
+    from mi_gaussians.raster.blend import lane_layout, slot_count
     from mi_gaussians.run_folder import CHECKPOINT, RunRecord
     from mi_gaussians.runs import training_dataset
 
@@ -85,7 +85,7 @@ def main(argv=None) -> int:
     cam = tr.views.camera(0)
     layout = tr.layout or lane_layout()          # (the trainer's choice: raster.lanes)
     tiles_x, tiles_y = layout.tiles(cam.width, cam.height)
-    lanes = tiles_x * tiles_y * layout.lanes_per_tile
+    lanes = slot_count(tiles_x, tiles_y, layout) * layout.lanes_per_tile
     groups = defaultdict(lambda: [0, 0.0])
     for h in history:
         kind = str(h["type"]).split(".")[-1]

@@ -389,7 +389,7 @@ def test_tiles_ordered_by_work_keep_their_bands_longest_list_first(threads):
     import mitsuba as mi
 
     from mi_gaussians.raster.binning import Bins
-    from mi_gaussians.raster.blend import BAND_ROWS, tile_slots
+    from mi_gaussians.raster.blend import BAND_ROWS, slot_count, tile_slots
 
     rng = np.random.default_rng(5)
     tiles_x, tiles_y = 13, 9                       # (a partial last band)
@@ -405,6 +405,7 @@ def test_tiles_ordered_by_work_keep_their_bands_longest_list_first(threads):
             dr.set_thread_count(threads)
         cores = dr.thread_count()
         slots = tile_slots(bins, LANE_LAYOUTS["llvm"]).numpy()
+        assert len(slots) == slot_count(tiles_x, tiles_y, LANE_LAYOUTS["llvm"])
     finally:
         dr.set_thread_count(before)
     assert LANE_LAYOUTS["llvm"].by_work

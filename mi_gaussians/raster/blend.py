@@ -286,17 +286,35 @@ def tile_slots(bins: Bins, layout: LaneLayout) -> "mi.UInt32":
     key = (t // band_tiles) * LENGTH_LEVELS + ((LENGTH_LEVELS - 1) - level)
     dr.eval(key)
     order = stable_bucket_perm(key, n_bands * LENGTH_LEVELS)    # band by band, each by decreasing length
-    lanes = n_tiles * layout.lanes_per_tile
-    blocks = _llvm_blocks(lanes)
-    if blocks == 1 or blocks > 2 * dr.thread_count():
+    blocks, per = _blocks_of_slots(bins.tiles_x, bins.tiles_y, layout)
+    if blocks == 1:
         return order
-    bands_per_block = -(-n_bands // blocks)
-    per = -(-(bands_per_block * band_tiles) // 4) * 4     # slots per block: whole bands, whole packets of <= 4 tiles
     rank = dr.arange(mi.UInt32, n_tiles)
     band = rank // band_tiles
     slots = dr.full(mi.UInt32, n_tiles, blocks * per)
     dr.scatter(slots, order, (band % blocks) * per + (band // blocks) * band_tiles + (rank - band * band_tiles))
     return slots
+
+
+def _blocks_of_slots(tiles_x: int, tiles_y: int, layout: LaneLayout) -> tuple[int, int]:
+    """(blocks, slots per block) of :func:`tile_slots` with ``layout.by_work``: one block of all tiles when the bands
+    stay in order."""
+    n_tiles = tiles_x * tiles_y
+    blocks = _llvm_blocks(n_tiles * layout.lanes_per_tile)
+    if blocks == 1 or blocks > 2 * dr.thread_count():
+        return 1, n_tiles
+    bands_per_block = -(-(-(-tiles_y // BAND_ROWS)) // blocks)
+    per = -(-(bands_per_block * tiles_x * BAND_ROWS) // 4) * 4   # whole bands, whole packets of up to 4 tiles
+    return blocks, per
+
+
+def slot_count(tiles_x: int, tiles_y: int, layout: LaneLayout) -> int:
+    """How many slots :func:`tile_slots` makes for a ``tiles_x`` x ``tiles_y`` grid: the blend kernels run over this
+    many times ``layout.lanes_per_tile`` lanes."""
+    if not layout.by_work:
+        return tiles_x * tiles_y
+    blocks, per = _blocks_of_slots(tiles_x, tiles_y, layout)
+    return blocks * per
 
 
 def _lane_pixels(frame: Frame, tile: "mi.UInt32", local: "mi.UInt32"):
