@@ -20,11 +20,11 @@ from mi_gaussians.raster.projection import GaussianArrays, ViewParams, project
 NAMES = ("means", "scales", "rotations", "opacities", "sh_dc", "sh_rest")
 
 
-def loop_ad_render(params: dict, cam, weights: dict, background=(0.0, 0.0, 0.0), view: ViewParams | None = None):
+def loop_ad_render(params: dict, cam, weights: dict, background=(0.0, 0.0, 0.0), view: ViewParams | None = None,
+                   cfg: RasterConfig = RasterConfig()):
     """The weighted loss's gradients with respect to the Gaussians (and, through ``view``, a camera's own Dr.Jit
     parameters: pass a view made from values with gradients enabled, and read them after the call; default: the view
-    of ``cam``), and the image."""
-    cfg = RasterConfig()
+    of ``cam``), and the image; ``cfg``: the blending rules' thresholds (``alpha_min`` ...)."""
     g = mig.Gaussians.from_numpy(**params)
     for k in NAMES:
         dr.enable_grad(getattr(g, k))
