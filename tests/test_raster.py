@@ -484,12 +484,49 @@ def test_the_balanced_layout_follows_the_heaviest_tiles_share():
     assert balanced_layout(0.0, cuda=False) == balanced_layout(1.0, cuda=False) == LANE_LAYOUTS["llvm"]
 
 
+#: a CPU layout whose backward skips (as CUDA's do)
+SKIPPING = LaneLayout(pixels=8, start_lanes=8, tile_rows=8, tile_cols=8, skip=True)
+
+
 @pytest.mark.parametrize("footprint", ["box", "ellipse"])
 @pytest.mark.parametrize("alpha_min", [1.0 / 255.0, 1e-6, 0.2])
-def test_every_alpha_min_has_the_loop_ads_gradients(footprint, alpha_min):
+def test_the_backward_packet_skip_changes_no_gradient(monkeypatch, ordered_sums, footprint, alpha_min):
+    """With ``LaneLayout.skip`` (CUDA's layouts; here on a CPU layout that skips) the backward blend skips an
+    instance's arithmetic in a SIMD packet where no pixel's exponent reaches
+    log2(alpha_min / opacity) less ``SKIP_MARGIN``: the gradients are those of the loop that never skips, at every
+    alpha_min, with fully transparent Gaussians and with the box footprint (many binned
+    tiles no pixel of which is reached). A bound that skips reachable pixels (a negative margin) changes them.
+    (In a fixed order of sums, ``ordered_sums``: on two threads the rounding of the two runs' sums once differed by
+    1.03e-6 of the largest gradient, above the tolerance, in a clean-clone CI run.)"""
+    from mi_gaussians.config import RasterConfig
+
+    monkeypatch.setattr(blend_module, "lane_layout", lambda: SKIPPING)
+    params, cam = sf.random_scene(seed=41, n=120, sh_degree=1, width=61, height=43)
+    params["opacities"][::7] = -1e4        # opacity 0 in float32
+    params["opacities"][3::7] = -4.0       # alpha near 1/255 at the centre: the bound's edge
+    weights = random_weights(cam, seed=5)
+    cfg = RasterConfig(footprint=footprint, alpha_min=alpha_min)
+    skipping = gradients_numpy(params, cam, weights, background=BACKGROUND, cfg=cfg)[0]
+    monkeypatch.setattr(blend_module, "SKIP_MARGIN", float("inf"))     # lo = -inf: never skip
+    never = gradients_numpy(params, cam, weights, background=BACKGROUND, cfg=cfg)[0]
+    for k in NAMES:
+        scale = max(np.abs(never[k]).max(), 1e-6)
+        np.testing.assert_allclose(skipping[k], never[k], rtol=0, atol=1e-6 * scale, err_msg=k)
+    # skips pixels of alpha up to 8 alpha_min (at alpha_min 1e-6, up to 0.07: those below carry no visible weight)
+    monkeypatch.setattr(blend_module, "SKIP_MARGIN", -3.0 if alpha_min > 1e-3 else -16.0)
+    wrong = gradients_numpy(params, cam, weights, background=BACKGROUND, cfg=cfg)[0]
+    assert any(not np.allclose(wrong[k], never[k], rtol=0, atol=1e-4 * max(np.abs(never[k]).max(), 1e-6))
+               for k in NAMES)
+
+
+@pytest.mark.parametrize("footprint", ["box", "ellipse"])
+@pytest.mark.parametrize("alpha_min", [1.0 / 255.0, 1e-6, 0.2])
+@pytest.mark.parametrize("layout", ["llvm", "skipping"])
+def test_every_alpha_min_has_the_loop_ads_gradients(footprint, alpha_min, layout, monkeypatch):
     """At every ``raster.alpha_min``, with fully transparent Gaussians and Gaussians whose alpha is near alpha_min at
     their centre, and with both footprints (the box bins many tiles no pixel of which is reached): the hand-written
-    backward's gradients are those of Dr.Jit's AD through the brute-force per-pixel loop."""
+    backward's gradients are those of Dr.Jit's AD through the brute-force per-pixel loop, with the CPU's layout
+    (no skip) and with one that skips."""
     from drjit_loop_reference import loop_ad_render
 
     from mi_gaussians.config import RasterConfig
@@ -499,6 +536,7 @@ def test_every_alpha_min_has_the_loop_ads_gradients(footprint, alpha_min):
     params["opacities"][3::7] = -4.0       # alpha near 1/255 at the centre
     weights = random_weights(cam, seed=5)
     cfg = RasterConfig(footprint=footprint, alpha_min=alpha_min)
+    monkeypatch.setattr(blend_module, "lane_layout", lambda: SKIPPING if layout == "skipping" else LANE_LAYOUTS["llvm"])
     ours, out = gradients_numpy(params, cam, weights, background=BACKGROUND, cfg=cfg)
     theirs, img = loop_ad_render(params, cam, weights, background=BACKGROUND, cfg=cfg)
     np.testing.assert_allclose(np.array(out.rgb).reshape(img["rgb"].shape), img["rgb"], atol=1e-5)

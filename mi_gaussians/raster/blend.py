@@ -8,7 +8,10 @@ Forward (per pixel, front to back over its tile's instance list, the reference r
 
 It stores only the final transmittance and the index of the last contributor per pixel. Backward walks each
 pixel's list back to front from its last contributor, recovering T by division, with no cap on the number of
-Gaussians that receive gradients.
+Gaussians that receive gradients; where the layout says so (:attr:`LaneLayout.skip`: on CUDA) it skips an
+instance's arithmetic in a warp none of whose pixels can reach alpha_min (a bound on the exponent per instance,
+:func:`_pack_geometry`): on trained models only 7-12 % of the pixel evaluations are hits
+(docs/benchmarks/work_per_step.md).
 
 Layout for speed on SIMD CPUs (and coherent on GPUs): one lane handles a column of ``LaneLayout.pixels`` pixels of a
 tile (the binning's tile grid: 8 x 8 pixels, 8 per lane, two tiles to a 16-lane SIMD packet, on the LLVM backend;
@@ -25,6 +28,7 @@ of float sums.
 
 from __future__ import annotations
 
+import math
 import sys
 from dataclasses import dataclass
 
@@ -37,7 +41,7 @@ from .binning import Bins, stable_bucket_perm
 
 TILE = 16
 GEO = 8      # packed geometry per Gaussian and per instance: mx, my, log2(e) (-a/2, -b, -c/2) of the conic
-             # (a, b, c), opacity, depth, (pad); see _pack_geometry
+             # (a, b, c), opacity, depth, the skip bound; see _pack_geometry
 COL = 4      # packed colour per Gaussian and per instance: r, g, b, (pad)
 
 
@@ -49,15 +53,18 @@ class LaneLayout:
     two dividing ``tile_rows``; more pixels share a lane's gathers and its one gradient scatter per Gaussian, at the
     price of registers; a tile's lanes take its columns first, then its bands of ``pixels`` rows), and the backward
     pass's lanes starting together in groups of ``start_lanes`` (a power of two dividing the lanes of a tile; a SIMD
-    packet's worth or more keeps a packet's lanes on the same instance), and with ``by_work`` the tiles taken in an
+    packet's worth or more keeps a packet's lanes on the same instance), with ``by_work`` the tiles taken in an
     order that gives the tiles sharing a SIMD packet lists of about equal length (:func:`tile_slots`; for packets
-    of more than one tile). The layout changes the speed, not the result: the footprint that bins a Gaussian does
-    not depend on the tile grid (:mod:`.footprint`)."""
+    of more than one tile), and with ``skip`` the backward pass skipping an instance's arithmetic in the lanes none
+    of whose pixels its alpha can reach (a branch around a SIMD packet or warp in which no lane can). The layout
+    changes the speed, not the result: the footprint that bins a Gaussian does not depend on the tile grid
+    (:mod:`.footprint`)."""
     pixels: int
     start_lanes: int
     tile_rows: int = TILE
     tile_cols: int = TILE
     by_work: bool = False
+    skip: bool = True
 
     def __post_init__(self):
         powers = {1, 2, 4, 8, 16, 32, 64, 128, 256}
@@ -105,7 +112,7 @@ class LaneLayout:
 # on 100k synthetic Gaussians at 800x800, 1.01x on 1M at 1600x1600; the frozen training step 0.93x on mi_objects/colmap
 # and the 400x400 table. CUDA's default is the layout measured on the H100 (a warp of 32 lanes: 4 pixels, the
 # 16 x 16 tile's 64 lanes starting together); training chooses among CUDA_LAYOUTS by the tiles' load (below).
-LANE_LAYOUTS = {"llvm": LaneLayout(pixels=8, start_lanes=8, tile_rows=8, tile_cols=8, by_work=True),
+LANE_LAYOUTS = {"llvm": LaneLayout(pixels=8, start_lanes=8, tile_rows=8, tile_cols=8, by_work=True, skip=False),
                 "cuda": LaneLayout(pixels=4, start_lanes=64)}
 
 
@@ -217,17 +224,23 @@ def _per_instance(packed: "mi.Float", stride: int, inst: "mi.UInt32", count=None
     return buf
 
 
-def _pack_geometry(mean2d, conic, opacity, depth) -> "mi.Float":
-    """[mx, my, qa, qb, qc, opacity, depth, 0] per Gaussian with (qa, qb, qc) = log2(e) (-a/2, -b, -c/2), so that
-    the Gaussian falloff is exp(power) = exp2(qa dx^2 + qb dx dy + qc dy^2)."""
+SKIP_MARGIN = 1e-3   # log2 units (0.07 %): far above exp2's and log2's float error, so that the bound never skips a hit
+
+
+def _pack_geometry(mean2d, conic, opacity, depth, alpha_min: float) -> "mi.Float":
+    """[mx, my, qa, qb, qc, opacity, depth, lo] per Gaussian with (qa, qb, qc) = log2(e) (-a/2, -b, -c/2), so that
+    the Gaussian falloff is exp(power) = exp2(qa dx^2 + qb dx dy + qc dy^2), and ``lo`` = log2(alpha_min / opacity)
+    less :data:`SKIP_MARGIN` (``+inf`` at opacity 0): a pixel whose exponent is below it cannot reach alpha_min
+    (:attr:`LaneLayout.skip`; the exact test still decides every hit)."""
+    lo = (math.log2(alpha_min) - SKIP_MARGIN) - dr.log2(opacity)
     return _pack([mean2d.x, mean2d.y, (-0.5 * LOG2E) * conic.x, -LOG2E * conic.y, (-0.5 * LOG2E) * conic.z,
-                  opacity, depth], GEO)
+                  opacity, depth, lo], GEO)
 
 
-def _pack_instances(mean2d, conic, opacity, depth, color, inst, count=None) -> tuple:
+def _pack_instances(mean2d, conic, opacity, depth, color, inst, alpha_min: float, count=None) -> tuple:
     """The blend's inputs: the geometry and colour records (:func:`_pack_geometry`, [r, g, b, 0]) per instance of
     the list ``inst`` (:func:`_per_instance`), evaluated."""
-    geo = _per_instance(_pack_geometry(mean2d, conic, opacity, depth), GEO, inst, count)
+    geo = _per_instance(_pack_geometry(mean2d, conic, opacity, depth, alpha_min), GEO, inst, count)
     col = _per_instance(_pack([color.x, color.y, color.z], COL), COL, inst, count)
     dr.eval(geo, col)
     return geo, col
@@ -438,75 +451,89 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
         return i > start
 
     def body(i, T, acc):
-        # (every instance's arithmetic, in every lane: a symbolic ``if`` skipping the SIMD packets none of whose
-        # pixels reach alpha_min, which the binning's tile lists seldom hold, cost more than it saved; its masks
-        # also made the gradient scatters branch per lane; docs/benchmarks/work_per_step.md)
         i = i - 1
         f = dr.gather(ArrayXf, geo, i, shape=(GEO, n_lanes))
-        mx, my, qa, qb, qc, op, z = f[0], f[1], f[2], f[3], f[4], f[5], f[6]
+        mx, my, qa, qb, qc, op, z, lo = f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7]
         dx = mx - px
         ax2 = qa * dx * dx
         bx = qb * dx
-        ca, cb, cc = (-2.0 / LOG2E) * qa, (-1.0 / LOG2E) * qb, (-2.0 / LOG2E) * qc   # the conic (a, b, c)
-        T, acc = list(T), list(acc)
-        hit, alphas, Gs, unclamped, dys = [], [], [], [], []
-        for k in range(P):
-            dy = my - pys[k]
-            power2 = dr.fma(dy, dr.fma(qc, dy, bx), ax2)      # bit-identical to the forward
-            G = dr.exp2(power2)
-            raw = op * G
-            alpha = fmin(raw, alpha_max)
-            # (i < last[k]: the pixels this instance can still contribute to)
-            h = valid[k] & (i < last[k]) & (alpha >= alpha_min) & (power2 <= 0)
-            hit.append(h)
-            alphas.append(alpha)
-            Gs.append(G)
-            unclamped.append(raw < alpha_max)
-            dys.append(dy)
-        g = dr.gather(mi.UInt32, inst, i)
-        c = dr.gather(mi.Vector4f, col, i)
-        # Per lane, the conic's and the mean's gradients are sums over its pixels of g_pow times 1, dy, dy^2
-        # (dx is the lane's): three running sums, the products with dx and the conic once per instance.
-        # (separate objects: Dr.Jit's += is in-place)
-        s0, s_y, s_yy, g_o, g_z, g_r, g_g, g_bl, abs_mx, abs_my = (mi.Float(0.0) for _ in range(10))
-        for k in range(P):
-            a = alphas[k]
-            inv = dr.rcp(1.0 - a)
-            Ti = T[k] * inv                         # transmittance in front of this Gaussian
-            gc = gpix[k]
-            wgt = dr.fma(gc.x, c.x, dr.fma(gc.y, c.y, dr.fma(gc.z, c.z, gc.w * z)))
-            g_alpha = Ti * wgt - (acc[k] + gT_times_T[k]) * inv
-            aT = a * Ti
-            h = hit[k]
-            T[k] = dr.select(h, Ti, T[k])
-            acc[k] = dr.select(h, dr.fma(wgt, aT, acc[k]), acc[k])
-            hw = h & unclamped[k]
-            g_pow = dr.select(hw, g_alpha * a, 0.0)   # d alpha / d power = o G = alpha when not clamped
-            dy = dys[k]
-            aT_h = dr.select(h, aT, 0.0)
-            s0 = s0 + g_pow
-            gy = g_pow * dy
-            s_y = s_y + gy
-            s_yy = dr.fma(gy, dy, s_yy)
-            if absgrad:
-                abs_mx = abs_mx + dr.abs(g_pow * (ca * dx + cb * dy))
-                abs_my = abs_my + dr.abs(g_pow * (cc * dy + cb * dx))
-            g_o = g_o + dr.select(hw, g_alpha * Gs[k], 0.0)
-            g_z = dr.fma(gc.w, aT_h, g_z)
-            g_r = dr.fma(gc.x, aT_h, g_r)
-            g_g = dr.fma(gc.y, aT_h, g_g)
-            g_bl = dr.fma(gc.z, aT_h, g_bl)
-        dx_s0 = dx * s0
-        g_mx = -(ca * dx_s0 + cb * s_y)
-        g_my = -(cc * s_y + cb * dx_s0)
-        g_a = (-0.5 * dx) * dx_s0
-        g_b = -(dx * s_y)
-        g_c = -0.5 * s_yy
-        # every lane adds, zeros where none of its pixels was hit: a mask here would make the LLVM backend's packet
-        # scatter branch on each lane's flag
-        dr.scatter_add(ggeo, ArrayXf(g_mx, g_my, g_a, g_b, g_c, g_o, g_z, abs_mx), g, mode=dr.ReduceMode.Expand)
-        dr.scatter_add(gcol, mi.Vector4f(g_r, g_g, g_bl, abs_my), g, mode=dr.ReduceMode.Expand)
-        return i, tuple(T), tuple(acc)
+        dys = [my - pys[k] for k in range(P)]
+        powers = [dr.fma(dys[k], dr.fma(qc, dys[k], bx), ax2) for k in range(P)]   # bit-identical to the forward
+        live = [valid[k] & (i < last[k]) for k in range(P)]      # pixels this instance can still contribute to
+
+        def backward_instance(T, acc, masked: bool):
+            ca, cb, cc = (-2.0 / LOG2E) * qa, (-1.0 / LOG2E) * qb, (-2.0 / LOG2E) * qc   # the conic (a, b, c)
+            T, acc = list(T), list(acc)
+            hit, alphas, Gs, unclamped = [], [], [], []
+            for k in range(P):
+                power2 = powers[k]
+                G = dr.exp2(power2)
+                raw = op * G
+                alpha = fmin(raw, alpha_max)
+                h = live[k] & (alpha >= alpha_min) & (power2 <= 0)
+                hit.append(h)
+                alphas.append(alpha)
+                Gs.append(G)
+                unclamped.append(raw < alpha_max)
+            # Unmasked (``masked`` False), every lane adds, zeros where none of its pixels was hit: on the LLVM
+            # backend a mask makes the packet scatter branch on each lane's flag
+            active = _any(hit) if masked else True
+            g = dr.gather(mi.UInt32, inst, i, active=active)
+            c = dr.gather(mi.Vector4f, col, i, active=active)
+            # Per lane, the conic's and the mean's gradients are sums over its pixels of g_pow times 1, dy, dy^2
+            # (dx is the lane's): three running sums, the products with dx and the conic once per instance.
+            # (separate objects: Dr.Jit's += is in-place)
+            s0, s_y, s_yy, g_o, g_z, g_r, g_g, g_bl, abs_mx, abs_my = (mi.Float(0.0) for _ in range(10))
+            for k in range(P):
+                a = alphas[k]
+                inv = dr.rcp(1.0 - a)
+                Ti = T[k] * inv                         # transmittance in front of this Gaussian
+                gc = gpix[k]
+                wgt = dr.fma(gc.x, c.x, dr.fma(gc.y, c.y, dr.fma(gc.z, c.z, gc.w * z)))
+                g_alpha = Ti * wgt - (acc[k] + gT_times_T[k]) * inv
+                aT = a * Ti
+                h = hit[k]
+                T[k] = dr.select(h, Ti, T[k])
+                acc[k] = dr.select(h, dr.fma(wgt, aT, acc[k]), acc[k])
+                hw = h & unclamped[k]
+                g_pow = dr.select(hw, g_alpha * a, 0.0)   # d alpha / d power = o G = alpha when not clamped
+                dy = dys[k]
+                aT_h = dr.select(h, aT, 0.0)
+                s0 = s0 + g_pow
+                gy = g_pow * dy
+                s_y = s_y + gy
+                s_yy = dr.fma(gy, dy, s_yy)
+                if absgrad:
+                    abs_mx = abs_mx + dr.abs(g_pow * (ca * dx + cb * dy))
+                    abs_my = abs_my + dr.abs(g_pow * (cc * dy + cb * dx))
+                g_o = g_o + dr.select(hw, g_alpha * Gs[k], 0.0)
+                g_z = dr.fma(gc.w, aT_h, g_z)
+                g_r = dr.fma(gc.x, aT_h, g_r)
+                g_g = dr.fma(gc.y, aT_h, g_g)
+                g_bl = dr.fma(gc.z, aT_h, g_bl)
+            dx_s0 = dx * s0
+            g_mx = -(ca * dx_s0 + cb * s_y)
+            g_my = -(cc * s_y + cb * dx_s0)
+            g_a = (-0.5 * dx) * dx_s0
+            g_b = -(dx * s_y)
+            g_c = -0.5 * s_yy
+            dr.scatter_add(ggeo, ArrayXf(g_mx, g_my, g_a, g_b, g_c, g_o, g_z, abs_mx), g,
+                           active=active, mode=dr.ReduceMode.Expand)
+            dr.scatter_add(gcol, mi.Vector4f(g_r, g_g, g_bl, abs_my), g, active=active,
+                           mode=dr.ReduceMode.Expand)
+            return tuple(T), tuple(acc)
+
+        if not layout.skip:
+            # every instance's arithmetic in every lane: on the CPU's 8 x 8 tiles paired by length few SIMD packets
+            # have no lane that can be hit, and the skip's masks cost more than it saved
+            # (docs/benchmarks/work_per_step.md)
+            T, acc = backward_instance(T, acc, masked=False)
+            return i, T, acc
+        # a SIMD packet or warp where no pixel can reach alpha_min skips the instance's arithmetic
+        may_hit = _any([live[k] & (powers[k] >= lo) for k in range(P)])
+        T, acc = dr.if_stmt((T, acc), may_hit, lambda T, acc: backward_instance(T, acc, masked=True),
+                            lambda *state: state, label="mi_gaussians.blend_backward.hit")
+        return i, T, acc
 
     state = (mi.UInt32(i0), tuple(mi.Float(Tf[k]) for k in range(P)),
              tuple(dr.zeros(mi.Float, n_lanes) for _ in range(P)))
@@ -521,7 +548,8 @@ class BlendOp(dr.CustomOp):
     def eval(self, mean2d, conic, opacity, color, depth, bins, frame, cfg, stats):
         self.bins, self.frame, self.cfg, self.stats = bins, frame, cfg, stats
         self.n = dr.width(opacity)
-        self.geo, self.col = _pack_instances(mean2d, conic, opacity, depth, color, bins.gaussian, bins.n_blended)
+        self.geo, self.col = _pack_instances(mean2d, conic, opacity, depth, color, bins.gaussian, cfg.alpha_min,
+                                             bins.n_blended)
         self.slots = tile_slots(bins, frame.layout)
         img, self.T_lane, self.last_lane, stats.forward_evaluations = blend_forward(self.geo, self.col, bins,
                                                                                     frame, cfg, self.slots)
@@ -574,6 +602,6 @@ def blend(mean2d, conic, opacity, color, depth, bins: Bins, frame: Frame, cfg: R
     stats = BlendStats() if stats is None else stats
     if dr.grad_enabled(mean2d, conic, opacity, color, depth):
         return dr.custom(BlendOp, mean2d, conic, opacity, color, depth, bins, frame, cfg, stats)
-    geo, col = _pack_instances(mean2d, conic, opacity, depth, color, bins.gaussian)
+    geo, col = _pack_instances(mean2d, conic, opacity, depth, color, bins.gaussian, cfg.alpha_min)
     img, _, _, stats.forward_evaluations = blend_forward(geo, col, bins, frame, cfg)
     return tuple(img)
