@@ -240,8 +240,13 @@ def _pack_geometry(mean2d, conic, opacity, depth, alpha_min: float) -> "mi.Float
 def _pack_instances(mean2d, conic, opacity, depth, color, inst, alpha_min: float, count=None) -> tuple:
     """The blend's inputs: the geometry and colour records (:func:`_pack_geometry`, [r, g, b, 0]) per instance of
     the list ``inst`` (:func:`_per_instance`), evaluated."""
-    geo = _per_instance(_pack_geometry(mean2d, conic, opacity, depth, alpha_min), GEO, inst, count)
-    col = _per_instance(_pack([color.x, color.y, color.z], COL), COL, inst, count)
+    # (packed, then copied, both records in one kernel each: a gather from a buffer with a pending scatter evaluates
+    # it, so packing and copying one record after the other made four kernels)
+    packed_geo = _pack_geometry(mean2d, conic, opacity, depth, alpha_min)
+    packed_col = _pack([color.x, color.y, color.z], COL)
+    dr.eval(packed_geo, packed_col)
+    geo = _per_instance(packed_geo, GEO, inst, count)
+    col = _per_instance(packed_col, COL, inst, count)
     dr.eval(geo, col)
     return geo, col
 
