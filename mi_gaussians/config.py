@@ -47,9 +47,10 @@ SSIM_PADDINGS = ("same", "valid")
 #: ``RasterConfig.footprint``: the tiles a Gaussian is blended in (raster/footprint.py): 'ellipse', those its
 #: alpha >= alpha_min ellipse reaches; 'box', every tile of that ellipse's bounding box. Same image and gradients.
 FOOTPRINTS = ("ellipse", "box")
-#: ``RasterConfig.lanes``: how training on CUDA maps the blend's pixels to lanes (raster/blend.py): 'balanced', the
-#: layout the tiles' load calls for (``balanced_layout``: fewer pixels per lane when one tile holds a large share of
-#: the instances); 'fixed', the backend's one layout. The speed only: the same images, gradients up to float sums.
+#: ``RasterConfig.lanes``: how training maps the blend's pixels to lanes (raster/blend.py): 'balanced', the layout
+#: the tiles' load calls for (``balanced_layout``: on CUDA fewer pixels per lane when one tile holds a large share of
+#: the instances, on the CPU smaller tiles while the Gaussians are a few pixels wide); 'fixed', the backend's one
+#: layout. The speed only: the same images, gradients up to float sums.
 LANES = ("balanced", "fixed")
 #: ``OptimConfig.coarse_to_fine``: 'off' (every iteration at full resolution, the reference), 'spectrum'
 #: (DashGaussian's schedule from the images' Fourier spectra: optim/resolution.py).
@@ -123,8 +124,8 @@ class RasterConfig:
                                              # ellipse reaches ('ellipse'), or in every tile of the ellipse's bounding
                                              # box ('box'; the reference: a 3-sigma square); the same image and
                                              # gradients, less work
-    lanes: str = "balanced"                  # LANES: training on CUDA picks the blend's pixels per lane by the tiles'
-                                             # load ('balanced') or keeps the backend's one layout ('fixed')
+    lanes: str = "balanced"                  # LANES: training picks the blend's layout by the tiles' load and the
+                                             # Gaussians' size ('balanced') or keeps the backend's one ('fixed')
 
 
 @dataclass(frozen=True)

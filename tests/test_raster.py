@@ -335,7 +335,8 @@ LAYOUTS = {**LANE_LAYOUTS, "one_pixel": LaneLayout(pixels=1, start_lanes=256),
            "four_columns": LaneLayout(pixels=8, start_lanes=4, tile_rows=8, tile_cols=4),
            "one_column": LaneLayout(pixels=2, start_lanes=2, tile_rows=4, tile_cols=1),
            "image_order": LaneLayout(pixels=8, start_lanes=8, tile_rows=8, tile_cols=8),
-           "by_work_sixteen": LaneLayout(pixels=4, start_lanes=16, tile_rows=16, by_work=True)}
+           "by_work_sixteen": LaneLayout(pixels=4, start_lanes=16, tile_rows=16, by_work=True),
+           "small_tiles": blend_module.SMALL_TILES}
 
 
 @pytest.fixture(params=sorted(LAYOUTS))
@@ -482,6 +483,19 @@ def test_the_balanced_layout_follows_the_heaviest_tiles_share():
     assert [c.pixels for c in chosen] == sorted((c.pixels for c in chosen), reverse=True)
     assert {c.pixels for c in chosen} == {4, 2, 1} and chosen[0] == LANE_LAYOUTS["cuda"]
     assert balanced_layout(0.0, cuda=False) == balanced_layout(1.0, cuda=False) == LANE_LAYOUTS["llvm"]
+
+
+def test_the_cpu_trains_small_gaussians_on_small_tiles():
+    """On the CPU: SMALL_TILES (4 x 8) while the visible Gaussians' mean footprint radius is below SMALL_RADIUS
+    pixels, the 8 x 8 layout above it or when unknown; whatever the heaviest tile's share. CUDA's choice ignores it."""
+    from mi_gaussians.raster.blend import SMALL_RADIUS, SMALL_TILES, balanced_layout
+
+    assert SMALL_TILES.tile == (4, 8) and SMALL_TILES.by_work and LANE_LAYOUTS["llvm"].tile == (8, 8)
+    for share in (0.0, 0.3, 1.0):
+        assert balanced_layout(share, cuda=False, radius=0.5 * SMALL_RADIUS) == SMALL_TILES
+        assert balanced_layout(share, cuda=False, radius=2.0 * SMALL_RADIUS) == LANE_LAYOUTS["llvm"]
+        assert balanced_layout(share, cuda=False, radius=None) == LANE_LAYOUTS["llvm"]
+        assert balanced_layout(share, cuda=True, radius=1.0) == balanced_layout(share, cuda=True)
 
 
 #: a CPU layout whose backward skips (as CUDA's do)

@@ -50,7 +50,8 @@ class LoopStats:
     traced: int = 0
     refinements: int = 0
     syncs: int = 0
-    lanes: dict = field(default_factory=dict)   # iterations per blend layout's pixels per lane (raster.lanes)
+    regrids: int = 0            # new tile grids chosen for the blend (on the CPU), each measured by a traced iteration
+    lanes: dict = field(default_factory=dict)   # iterations per blend layout (its LaneLayout.label; raster.lanes)
     outside: dict = field(default_factory=lambda: {"evaluation": 0.0, "saving": 0.0})
 
     @contextmanager

@@ -17,6 +17,7 @@ before every checkpoint), stops the run with :class:`TrainingDiverged`; the last
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from pathlib import Path
@@ -30,7 +31,7 @@ from ..data.dataset import Dataset
 from ..drjit_utils import exact_float_math
 from ..evaluate import evaluate_views, summarize
 from ..model.gaussians import Gaussians
-from ..raster.blend import balanced_layout, lane_layout
+from ..raster.blend import LaneLayout, balanced_layout, lane_layout
 from ..raster.rasterize import render
 from .. import run_folder
 from . import checkpoint, guard
@@ -104,6 +105,8 @@ class Trainer:
         self._layout_due = True            # (chosen at the first iteration and at each refinement)
         self._shares: list[float] = []     # each iteration's heaviest tile's share of its blended instances since
                                            # the last choice of layout
+        self._radii = None                 # the footprint radii (mi.Int32, 0: not visible) of the traced
+                                           # iteration that chooses the layout
         self._refine_at: int | None = None  # an iteration whose refinement is still to run (see _refine)
         self.loop = LoopStats()            # time split, recordings, overflows, syncs (a refinement's own not counted)
         self._peak = 0                     # most instances a committed frozen step needed since the last traced one
@@ -162,7 +165,8 @@ class Trainer:
         meta = {"step": self.step, "run_id": self.run_id, "refine_pending": self._refine_at, "elapsed": self.elapsed,
                 "history": self.history.to_dict(), "loop": self.loop.to_dict(),
                 "sampler": self.sampler.state(), "bg_rng": self.bg_rng.bit_generator.state,
-                "strategy": strategy_meta, "config": self.cfg.to_dict()}
+                "strategy": strategy_meta, "config": self.cfg.to_dict(),
+                "layout": None if self.layout is None else dataclasses.asdict(self.layout)}
         checkpoint.write(self.out / CHECKPOINT, sections, meta)
 
     def load_checkpoint(self) -> None:
@@ -194,6 +198,8 @@ class Trainer:
         self.loop = LoopStats.from_dict(meta.get("loop"))
         self.sampler.restore(meta["sampler"])
         self.bg_rng.bit_generator.state = meta["bg_rng"]
+        if meta.get("layout") is not None:      # (the blend's layout as chosen, until the next choice)
+            self.layout, self._layout_due = LaneLayout(**meta["layout"]), False
 
     def target(self, idx: int, bg) -> "mi.TensorXf":
         """Training view ``idx``'s image over background ``bg`` (only RGBA images change with the background), at the
@@ -208,10 +214,11 @@ class Trainer:
         bg = tuple(self.bg_rng.random(3)) if self.cfg.optim.random_background else self.background
         return idx, bg
 
-    def _iteration(self, step: int) -> tuple[float, int, int]:
+    def _iteration(self, step: int, keep_radii: bool = False) -> tuple[float, int, int]:
         """One traced iteration (synchronizes: reads the loss and the instance count back). On a refinement iteration
         it gathers the statistics and leaves the refinement pending (:meth:`_refine`, at the start of the next
-        iteration). Returns (loss, tile instances, instances blended)."""
+        iteration); ``keep_radii``: its Gaussians' footprint radii are kept for the choice of layout after it. Returns
+        (loss, tile instances, instances blended)."""
         cfg = self.cfg
         o = cfg.optim
         self.trim()
@@ -256,6 +263,8 @@ class Trainer:
             self._refine_at = step
         blended = int(out.n_blended[0]) if dr.is_array_v(out.n_blended) else 0
         self._note_load(blended, out.max_tile)
+        if keep_radii:
+            self._radii = out.radii
         return value, int(out.n_instances), blended
 
     def _refine(self) -> None:
@@ -301,12 +310,23 @@ class Trainer:
         """The blend's lane layout from the first iteration and from each refinement iteration on (``raster.lanes``
         'balanced'; the frozen loop's traced iterations, so that a new layout, a new recording of the frozen step, comes
         at most every 100 iterations while densifying): the one :func:`~mi_gaussians.raster.blend.balanced_layout`
-        gives for the mean share of the heaviest tile over the iterations since the last choice. The traced loop
-        chooses at the same iterations from the same renders."""
+        gives for the mean share of the heaviest tile over the iterations since the last choice and, on the CPU, the
+        mean footprint radius of the Gaussians the iteration just traced shows. The traced loop chooses at the same
+        iterations from the same renders. A new tile grid (the CPU's layouts) drops the frozen steps' capacity and
+        peak, which the old grid's tiles counted: the next iteration is traced and measures them anew."""
         if self.cfg.raster.lanes == "balanced" and self._shares:
             share = sum(self._shares) / len(self._shares)
-            self.layout = balanced_layout(share, cuda=dr.backend_v(mi.Float) == dr.JitBackend.CUDA)
-        self._shares, self._layout_due = [], False
+            cuda = dr.backend_v(mi.Float) == dr.JitBackend.CUDA
+            radius = None
+            if not cuda and self._radii is not None:
+                visible = int(dr.count(self._radii > 0)[0])
+                radius = float(dr.sum(mi.Float(self._radii))[0]) / visible if visible else None
+            before = (self.layout or lane_layout()).tile
+            self.layout = balanced_layout(share, cuda=cuda, radius=radius)
+            if self.layout.tile != before:
+                self.capacity, self._peak = None, 0
+                self.loop.regrids += 1
+        self._shares, self._radii, self._layout_due = [], None, False
 
     def _class_rows(self) -> int:
         """The rows of the size class of the model (:func:`.train_step.row_class`; its own rows when not padded)."""
@@ -381,8 +401,8 @@ class Trainer:
         self.history.loss.append(loss)
         self.history.gaussians.append(self.n_gaussians)
         self.history.instances.append(blended)
-        pixels = str((self.layout or lane_layout()).pixels)
-        self.loop.lanes[pixels] = self.loop.lanes.get(pixels, 0) + 1
+        label = (self.layout or lane_layout()).label
+        self.loop.lanes[label] = self.loop.lanes.get(label, 0) + 1
         self.history.seconds.append(round(self.elapsed + time.perf_counter() - self._t0, 4))
         if self._bar is not None:
             self._bar.update(1)
@@ -427,14 +447,15 @@ class Trainer:
         if self._traced_at(step):
             if not self._resolve():
                 return
+            choose = self._layout_due or self.strategy.refines_at(step)     # (the frozen loop's traced iterations)
             with self.loop.timed("traced"):
-                loss, instances, blended = self._iteration(step)
+                loss, instances, blended = self._iteration(step, keep_radii=choose)
             self.loop.traced += 1
             self.step = step
             self._commit(step, loss, blended)
             if self.cfg.freeze:
                 self._set_capacity_after_traced(instances)
-            if self._layout_due or self.strategy.refines_at(step):     # (the frozen loop's traced iterations)
+            if choose:
                 self._choose_layout()
         else:
             recordings = self.train_step.recordings

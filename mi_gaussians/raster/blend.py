@@ -80,6 +80,11 @@ class LaneLayout:
                              f"{self.lanes_per_tile} lanes of a tile")
 
     @property
+    def label(self) -> str:
+        """What the training loop's statistics call it (``LoopStats.lanes``)."""
+        return f"{self.pixels} px/lane, {self.tile_cols}x{self.tile_rows} tiles"
+
+    @property
     def lanes_per_tile(self) -> int:
         return self.tile_cols * self.tile_rows // self.pixels
 
@@ -116,6 +121,18 @@ LANE_LAYOUTS = {"llvm": LaneLayout(pixels=8, start_lanes=8, tile_rows=8, tile_co
                 "cuda": LaneLayout(pixels=4, start_lanes=64)}
 
 
+#: The CPU's layout for training while the Gaussians are a few pixels wide (:func:`balanced_layout`): tiles of 4 x 8
+#: pixels, four to a packet. Against 8 x 8 tiles, the frozen training step of the 7k models took 0.94x
+#: (mi_objects/colmap, 200x200, mean footprint radius 6 pixels), 0.95x (the 400x400 table, 8 pixels) and 0.91x
+#: (mi_room/colmap, 6 pixels); render + backward of mi_objects/colmap's model at twice and four times its size (radius 11
+#: and 21 pixels) 1.00x and 1.05x, the table's at twice (15 pixels) 1.00x: the smaller tiles' evaluations saved are
+#: worth their extra (Gaussian, tile) pairs while a Gaussian reaches only a few of them.
+SMALL_TILES = LaneLayout(pixels=8, start_lanes=4, tile_rows=8, tile_cols=4, by_work=True, skip=False)
+#: the visible Gaussians' mean footprint radius (the reference's 3-sigma radius, pixels) below which training on the
+#: CPU blends with :data:`SMALL_TILES`
+SMALL_RADIUS = 10.0
+
+
 def lane_layout() -> LaneLayout:
     """The active variant's backend's layout."""
     return LANE_LAYOUTS["cuda" if dr.backend_v(mi.Float) == dr.JitBackend.CUDA else "llvm"]
@@ -138,16 +155,18 @@ RESIDENT_LANES = 132 * 1024
 BALANCE = 3.0
 
 
-def balanced_layout(share: float, cuda: bool) -> LaneLayout:
+def balanced_layout(share: float, cuda: bool, radius: float | None = None) -> LaneLayout:
     """The blend's layout for renders whose heaviest tile holds ``share`` of the instances blended (its pairs over
-    all tiles' pairs): on CUDA the one with the most pixels per lane whose heaviest tile's lanes evaluate at most
-    :data:`BALANCE` times as many (pixel, instance) pairs as the mean of the lanes the GPU runs at once; on the CPU,
-    whose few threads take blocks of lanes as they come, the backend's one layout. (On the cases measured: 1 pixel per
+    all tiles' pairs) and whose visible Gaussians' mean footprint radius is ``radius`` pixels: on CUDA the one with the
+    most pixels per lane whose heaviest tile's lanes evaluate at most :data:`BALANCE` times as many (pixel, instance)
+    pairs as the mean of the lanes the GPU runs at once; on the CPU, whose few threads take blocks of lanes as they
+    come, :data:`SMALL_TILES` below :data:`SMALL_RADIUS`, else the backend's layout. (On the cases measured: 1 pixel per
     lane on trained object models at 200 to 800 pixels square, where that ratio is 7-100 with 4 pixels; 4 on synthetic
     100k Gaussians at 800x800 (0.97), 300k at 1200x1200 and 1M at 1600x1600 (0.40, 0.21); 2 on 30k and 100k at
     400x400 (3.9-4.2 with 4 pixels, 1.9-2.1 with 2).)"""
     if not cuda:
-        return LANE_LAYOUTS["llvm"]
+        small = radius is not None and float(radius) < SMALL_RADIUS
+        return SMALL_TILES if small else LANE_LAYOUTS["llvm"]
     for layout in CUDA_LAYOUTS:
         if float(share) * layout.pixels * RESIDENT_LANES <= BALANCE * TILE * TILE:
             return layout
