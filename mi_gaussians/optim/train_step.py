@@ -67,9 +67,9 @@ def _ladder(value: float, base: int, per_doubling: int) -> int:
 
 
 def capacity_for(instances: float) -> int:
-    """The smallest capacity of the ladder 4096 * 2^(k/4) (rounded up to a multiple of 256) that holds
+    """The smallest capacity of the ladder 4096 * 2^(k/8) (rounded up to a multiple of 256) that holds
     ``instances``."""
-    return _ladder(instances, _CAPACITY_BASE, 4)
+    return _ladder(instances, _CAPACITY_BASE, 8)
 
 
 # Size classes of the model (see "Size classes" in the module docstring): rows are padded up to the ladder
