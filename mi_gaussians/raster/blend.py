@@ -284,7 +284,7 @@ def _llvm_blocks(lanes: int) -> int:
         return 1
     if lanes <= 16384 * cores * 2:
         return 2 * cores
-    return -(-lanes // 16384)
+    return _ceil_div(lanes, 16384)
 
 
 def tile_slots(bins: Bins, layout: LaneLayout) -> "mi.UInt32":
@@ -309,7 +309,7 @@ def tile_slots(bins: Bins, layout: LaneLayout) -> "mi.UInt32":
     length = dr.gather(mi.UInt32, bins.tile_start, t + 1) - dr.gather(mi.UInt32, bins.tile_start, t)
     level = dr.minimum(mi.UInt32(8.0 * dr.log2(mi.Float(length) + 1.0)), LENGTH_LEVELS - 1)
     band_tiles = bins.tiles_x * BAND_ROWS
-    n_bands = -(-bins.tiles_y // BAND_ROWS)
+    n_bands = _ceil_div(bins.tiles_y, BAND_ROWS)
     key = (t // band_tiles) * LENGTH_LEVELS + ((LENGTH_LEVELS - 1) - level)
     dr.eval(key)
     order = stable_bucket_perm(key, n_bands * LENGTH_LEVELS)    # band by band, each by decreasing length
@@ -330,9 +330,12 @@ def _blocks_of_slots(tiles_x: int, tiles_y: int, layout: LaneLayout) -> tuple[in
     blocks = _llvm_blocks(n_tiles * layout.lanes_per_tile)
     if blocks == 1 or blocks > 2 * dr.thread_count():
         return 1, n_tiles
-    bands_per_block = -(-(-(-tiles_y // BAND_ROWS)) // blocks)
-    per = -(-(bands_per_block * tiles_x * BAND_ROWS) // 4) * 4   # whole bands, whole packets of up to 4 tiles
-    return blocks, per
+    bands_per_block = _ceil_div(_ceil_div(tiles_y, BAND_ROWS), blocks)
+    return blocks, 4 * _ceil_div(bands_per_block * tiles_x * BAND_ROWS, 4)   # whole bands, packets of <= 4 tiles
+
+
+def _ceil_div(a: int, b: int) -> int:
+    return -(-a // b)
 
 
 def slot_count(tiles_x: int, tiles_y: int, layout: LaneLayout) -> int:
@@ -344,11 +347,17 @@ def slot_count(tiles_x: int, tiles_y: int, layout: LaneLayout) -> int:
     return blocks * per
 
 
-def _lane_pixels(frame: Frame, tile: "mi.UInt32", local: "mi.UInt32"):
-    """Pixel coordinates (centres), validity and image indices of the pixels of the lanes blending ``tile``
-    (``bins.n_tiles`` or more: none) as its ``local``-th lane."""
+def _lane_pixels(frame: Frame, bins: Bins, slots: "mi.UInt32"):
+    """The lanes of slots ``slots`` (:func:`tile_slots`): (lane, tile (``bins.n_tiles``: none), whether a tile,
+    the start of its list, pixel coordinates (centres) of the lane's column and its pixels' rows, their validity and
+    image indices)."""
     layout = frame.layout
     P = layout.pixels
+    lane = dr.arange(mi.UInt32, dr.width(slots) * layout.lanes_per_tile)
+    tile = dr.gather(mi.UInt32, slots, lane >> layout.tile_shift)
+    local = lane & (layout.lanes_per_tile - 1)
+    real = tile < bins.n_tiles           # (padding slots: an empty list)
+    start = dr.gather(mi.UInt32, bins.tile_start, tile, active=real)
     tile_f = mi.Float(tile)
     ty = dr.floor((tile_f + 0.5) / frame.tiles_x_f)
     tx = tile_f - ty * frame.tiles_x_f
@@ -359,22 +368,17 @@ def _lane_pixels(frame: Frame, tile: "mi.UInt32", local: "mi.UInt32"):
     x_ok = x < frame.width_f
     valid = [x_ok & (y0 + k < frame.height_f) for k in range(P)]
     pix = [mi.UInt32(y0 + k) * mi.UInt32(frame.width_f) + mi.UInt32(x) for k in range(P)]
-    return px, pys, valid, pix
+    return lane, tile, real, start, px, pys, valid, pix
 
 
 def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cfg: RasterConfig, slots=None):
     """``geo``, ``col``: the features packed per instance (:func:`_pack_instances`). Returns ([r, g, b, depth-sum,
     T] images (H*W each), lane-order T (lanes * pixels per lane), lane-order last index (the same), number of
     (pixel x Gaussian) evaluations (lazy UInt32))."""
-    layout = frame.layout
-    P = layout.pixels
-    slots = tile_slots(bins, layout) if slots is None else slots
-    n_lanes = dr.width(slots) * layout.lanes_per_tile
-    lane = dr.arange(mi.UInt32, n_lanes)
-    tile = dr.gather(mi.UInt32, slots, lane >> layout.tile_shift)
-    px, pys, valid, pix = _lane_pixels(frame, tile, lane & (layout.lanes_per_tile - 1))
-    real = tile < bins.n_tiles           # (padding slots: an empty list)
-    start = dr.gather(mi.UInt32, bins.tile_start, tile, active=real)
+    P = frame.layout.pixels
+    slots = tile_slots(bins, frame.layout) if slots is None else slots
+    lane, tile, real, start, px, pys, valid, pix = _lane_pixels(frame, bins, slots)
+    n_lanes = dr.width(lane)
     end = dr.gather(mi.UInt32, bins.tile_start, tile + 1, active=real)
     alpha_min, alpha_max, t_min = cfg.alpha_min, cfg.alpha_max, cfg.transmittance_min
 
@@ -447,14 +451,10 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
     With ``absgrad`` the padding slots carry AbsGS's statistic: geo slot 7 the sum over pixels of |d L_pixel / d mx|,
     colour slot 3 that of |d L_pixel / d my| (gsplat's ``absgrad``)."""
     layout = frame.layout
-    P, lanes_per_tile = layout.pixels, layout.lanes_per_tile
+    P = layout.pixels
     slots = tile_slots(bins, layout) if slots is None else slots     # (the forward's: the state is per lane)
-    n_lanes = dr.width(slots) * lanes_per_tile
-    lane = dr.arange(mi.UInt32, n_lanes)
-    tile = dr.gather(mi.UInt32, slots, lane >> layout.tile_shift)
-    px, pys, valid, pix = _lane_pixels(frame, tile, lane & (lanes_per_tile - 1))
-    real = tile < bins.n_tiles           # (padding slots: an empty list)
-    start = dr.gather(mi.UInt32, bins.tile_start, tile, active=real)
+    lane, tile, real, start, px, pys, valid, pix = _lane_pixels(frame, bins, slots)
+    n_lanes = dr.width(lane)
     # every lane of a group starts at the group's largest last-contributor index
     group = layout.start_lanes
     group_last = dr.block_reduce(dr.ReduceOp.Max, last_lane, group * P)
