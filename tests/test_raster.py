@@ -206,18 +206,23 @@ def test_means2d_absgrad_is_the_sum_of_per_pixel_absolute_gradients():
         mig.render(g, cam).means2d_absgrad
 
 
-def test_gradients_match_drjit_loop_ad():
-    """Our hand-written backward vs Dr.Jit's reverse-mode AD through a brute-force per-pixel loop."""
+def _assert_matches_loop_ad(params, cam, weights, **kw):
+    """The image and the gradients of every parameter against Dr.Jit's reverse-mode AD through a brute-force
+    per-pixel loop (``kw``: ``cfg``, the rasterizer's thresholds, for both)."""
     from drjit_loop_reference import loop_ad_render
 
-    params, cam = sf.random_scene(seed=21, n=30, sh_degree=2, width=40, height=30)
-    weights = random_weights(cam, seed=3)
-    ours, out = gradients_numpy(params, cam, weights, background=BACKGROUND)
-    theirs, img = loop_ad_render(params, cam, weights, background=BACKGROUND)
+    ours, out = gradients_numpy(params, cam, weights, background=BACKGROUND, **kw)
+    theirs, img = loop_ad_render(params, cam, weights, background=BACKGROUND, **kw)
     np.testing.assert_allclose(np.array(out.rgb).reshape(img["rgb"].shape), img["rgb"], atol=1e-5)
     for k in NAMES:
         scale = max(np.abs(theirs[k]).max(), 1e-6)
         np.testing.assert_allclose(ours[k], theirs[k], rtol=0, atol=1e-4 * scale, err_msg=k)
+
+
+def test_gradients_match_drjit_loop_ad():
+    """Our hand-written backward vs Dr.Jit's reverse-mode AD through a brute-force per-pixel loop."""
+    params, cam = sf.random_scene(seed=21, n=30, sh_degree=2, width=40, height=30)
+    _assert_matches_loop_ad(params, cam, random_weights(cam, seed=3))
 
 
 def test_means2d_gradient_exposed():
@@ -541,8 +546,6 @@ def test_every_alpha_min_has_the_loop_ads_gradients(footprint, alpha_min, layout
     their centre, and with both footprints (the box bins many tiles no pixel of which is reached): the hand-written
     backward's gradients are those of Dr.Jit's AD through the brute-force per-pixel loop, with the CPU's layout
     (no skip) and with one that skips."""
-    from drjit_loop_reference import loop_ad_render
-
     from mi_gaussians.config import RasterConfig
 
     params, cam = sf.random_scene(seed=41, n=60, sh_degree=1, width=41, height=29)
@@ -551,9 +554,4 @@ def test_every_alpha_min_has_the_loop_ads_gradients(footprint, alpha_min, layout
     weights = random_weights(cam, seed=5)
     cfg = RasterConfig(footprint=footprint, alpha_min=alpha_min)
     monkeypatch.setattr(blend_module, "lane_layout", lambda: SKIPPING if layout == "skipping" else LANE_LAYOUTS["llvm"])
-    ours, out = gradients_numpy(params, cam, weights, background=BACKGROUND, cfg=cfg)
-    theirs, img = loop_ad_render(params, cam, weights, background=BACKGROUND, cfg=cfg)
-    np.testing.assert_allclose(np.array(out.rgb).reshape(img["rgb"].shape), img["rgb"], atol=1e-5)
-    for k in NAMES:
-        scale = max(np.abs(theirs[k]).max(), 1e-6)
-        np.testing.assert_allclose(ours[k], theirs[k], rtol=0, atol=1e-4 * scale, err_msg=k)
+    _assert_matches_loop_ad(params, cam, weights, cfg=cfg)
