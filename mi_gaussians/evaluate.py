@@ -55,8 +55,8 @@ def evaluate_views(g: Gaussians, views, background, sh_degree: int | None = None
     scores = []
     for v in views:
         target = targets[v.name] if targets is not None and v.name in targets else v.load_image()
-        img = np.array(render(g, v.camera, background=background, sh_degree=sh_degree, cfg=cfg).rgb,
-                       dtype=np.float32).reshape(target.shape)
+        out = render(g, v.camera, background=background, sh_degree=sh_degree, cfg=cfg, depth=False)
+        img = np.array(out.rgb, dtype=np.float32).reshape(target.shape)
         if protocol == "half":
             half = target.shape[1] // 2
             e = fit_affine(img[:, :half], target[:, :half, :3])

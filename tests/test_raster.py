@@ -386,6 +386,49 @@ def test_lane_layouts_agree_with_each_other():
             np.testing.assert_allclose(grads[k], base_grads[k], rtol=0, atol=1e-5 * scale, err_msg=f"{name} {k}")
 
 
+@pytest.mark.parametrize("layout", ["llvm", "small_tiles", "by_work_sixteen", "cuda"])
+@pytest.mark.parametrize("name", ["random", "opaque_stack", "border_and_outside", "empty"])
+def test_a_render_without_depth_is_the_same_render_and_gradients(layout, name, monkeypatch):
+    """``render(..., depth=False)`` (a training step without a depth loss): ``out.depth`` is None, and the images and
+    every gradient of a loss of the colour and the coverage are those of the render with depth, bit for bit; the
+    forward's loop then carries no depth sum (its kernel is another, smaller one)."""
+    import mitsuba as mi
+
+    monkeypatch.setattr(blend_module, "lane_layout", lambda: LAYOUTS[layout])
+    make = sf.SCENES.get(name) or (lambda seed: sf.random_scene(seed, n=120, sh_degree=2, width=53, height=37))
+    params, cam = make(seed=3)
+    weights = random_weights(cam, seed=4)
+    got = {}
+    for depth in (True, False):
+        g = mig.Gaussians.from_numpy(**params)
+        for k in NAMES:
+            dr.enable_grad(getattr(g, k))
+        dr.eval()
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            dr.kernel_history()
+            out = mig.render(g, cam, background=BACKGROUND, depth=depth)
+            dr.eval(out.rgb, out.alpha)
+            ops = [k["operation_count"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+        loss = (dr.sum(out.rgb.array * mi.Float(weights["rgb"].astype(np.float32).ravel()))
+                + dr.sum(out.alpha.array * mi.Float(weights["alpha"].astype(np.float32).ravel())))
+        dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+        grads = {k: np.array(dr.grad(getattr(g, k))) for k in NAMES}
+        got[depth] = (np.array(out.rgb), np.array(out.alpha), grads, out.depth, ops)
+    rgb, alpha, grads, depth_img, ops = got[True]
+    rgb2, alpha2, grads2, none, ops2 = got[False]
+    assert depth_img is not None and none is None
+    np.testing.assert_array_equal(rgb2, rgb)
+    np.testing.assert_array_equal(alpha2, alpha)
+    for k in NAMES:
+        np.testing.assert_array_equal(grads2[k], grads[k], err_msg=k)
+    if name != "empty":
+        assert sum(ops2) < sum(ops)      # (the blend loop's kernel: fewer operations; the others the same)
+    plain = mig.render(mig.Gaussians.from_numpy(**params), cam, background=BACKGROUND, depth=False)  # (no AD)
+    assert plain.depth is None
+    np.testing.assert_array_equal(np.array(plain.rgb), rgb)
+    np.testing.assert_array_equal(np.array(plain.alpha), alpha)
+
+
 @pytest.mark.parametrize("threads", [None, 1, 3])
 def test_tiles_ordered_by_work_keep_their_bands_longest_list_first(threads):
     """``LaneLayout.by_work`` (the CPU's): every tile in one slot, the other slots padding (``n_tiles``); the tiles of

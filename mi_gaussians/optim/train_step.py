@@ -196,8 +196,9 @@ class TrainStep:
             # (n, the number of rows (a size class when padded), is an argument so that a new count always makes a
             # new recording)
             view = inputs.view if pose is None else pose.view(inputs.view, inputs.view_index)
+            # (the expected depth only for a depth loss: without it the blend carries no depth sum)
             out = render(params.gaussians, view, background=inputs.background, sh_degree=sh_degree,
-                         cfg=raster, capacity=capacity, layout=layout)
+                         cfg=raster, capacity=capacity, layout=layout, depth=inputs.depth_target is not None)
             strategy.step_pre_backward(params, state, None, out, collect=update_state)
             target = composite_target(inputs.target, inputs.transparency if random_background else None,
                                       inputs.background, fixed)

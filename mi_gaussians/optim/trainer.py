@@ -230,10 +230,11 @@ class Trainer:
         views = self.views
         views.set_scale(views.scale_at(step))
         camera = views.camera(idx) if self.poses is None else self.poses.view(views.view(idx), idx)
-        out = render(g, camera, background=bg, sh_degree=degree, cfg=cfg.raster, layout=self.layout)
+        depth = views.depth_of(idx)
+        out = render(g, camera, background=bg, sh_degree=degree, cfg=cfg.raster, layout=self.layout,
+                     depth=depth is not None)
         self.strategy.step_pre_backward(self.params, self.strategy_state, step, out,
                                         collect=self.strategy.updates_state_at(step))
-        depth = views.depth_of(idx)
         loss = training_loss(out, self.target(idx, bg), o.lambda_dssim, self.strategy, self.params, depth,
                              None if depth is None else dr.opaque(mi.Float, depth_weight(step, o)), self.exposure,
                              dr.opaque(mi.UInt32, idx), o.ssim_padding, views.transparency_of(idx), o.alpha_weight)

@@ -64,7 +64,7 @@ def _probe_weights(g: Gaussians, camera, pixel_weight, cfg: RasterConfig) -> "mi
     dr.enable_grad(dc)
     probe = Gaussians(means=dr.detach(g.means), scales=dr.detach(g.scales), rotations=dr.detach(g.rotations),
                       opacities=dr.detach(g.opacities), sh_dc=dc, sh_rest=no_rest)
-    out = render(probe, camera, background=(0.0, 0.0, 0.0), sh_degree=0, cfg=cfg)
+    out = render(probe, camera, background=(0.0, 0.0, 0.0), sh_degree=0, cfg=cfg, depth=False)
     rgb = out.rgb.array
     if pixel_weight is not None:
         rgb = rgb * dr.repeat(pixel_weight, 3)
@@ -85,7 +85,7 @@ def error_weights(g: Gaussians, views: Sequence, sh_degree: int, background, thr
         return total
     for camera, target in views:
         with dr.suspend_grad():
-            out = render(g, camera, background=background, sh_degree=sh_degree, cfg=cfg)
+            out = render(g, camera, background=background, sh_degree=sh_degree, cfg=cfg, depth=False)
             npix = camera.width * camera.height
             e = _channel_sum(dr.abs(out.rgb.array - target.array))
             lo, hi = dr.min(e), dr.max(e)

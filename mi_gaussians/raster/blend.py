@@ -371,9 +371,11 @@ def _lane_pixels(frame: Frame, bins: Bins, slots: "mi.UInt32"):
     return lane, tile, real, start, px, pys, valid, pix
 
 
-def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cfg: RasterConfig, slots=None):
+def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cfg: RasterConfig, slots=None,
+                  depth: bool = True):
     """``geo``, ``col``: the features packed per instance (:func:`_pack_instances`). Returns ([r, g, b, depth-sum,
-    T] images (H*W each), lane-order T (lanes * pixels per lane), lane-order last index (the same), number of
+    T] images (H*W each; without ``depth`` the depth sum is None: the loop then carries no depth accumulators and
+    writes no depth image), lane-order T (lanes * pixels per lane), lane-order last index (the same), number of
     (pixel x Gaussian) evaluations (lazy UInt32))."""
     P = frame.layout.pixels
     slots = tile_slots(bins, frame.layout) if slots is None else slots
@@ -411,7 +413,8 @@ def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cf
         rgb = mi.Color3f(c.x, c.y, c.z)
         for k in range(P):
             C[k] = dr.fma(rgb, ws[k], C[k])
-            D[k] = dr.fma(z, ws[k], D[k])
+            if depth:
+                D[k] = dr.fma(z, ws[k], D[k])
             T[k] = Ts[k]
             last[k] = dr.select(hit[k], i + 1, last[k])
         return i + 1, tuple(act), tuple(T), tuple(C), tuple(D), tuple(last)
@@ -420,7 +423,7 @@ def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cf
              tuple(mi.Bool(valid[k]) for k in range(P)),
              tuple(dr.full(mi.Float, 1.0, n_lanes) for _ in range(P)),
              tuple(dr.zeros(mi.Color3f, n_lanes) for _ in range(P)),
-             tuple(dr.zeros(mi.Float, n_lanes) for _ in range(P)),
+             tuple(dr.zeros(mi.Float, n_lanes) for _ in range(P)) if depth else (),
              tuple(mi.UInt32(start) for _ in range(P)))
     i_end, _, T, C, D, last = dr.while_loop(state, cond, body, label="mi_gaussians.blend_forward")
     dr.eval(i_end, T, C, D, last)   # one loop kernel; otherwise each consumer below would re-run the loop
@@ -431,10 +434,11 @@ def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cf
     # once and the buffers need no zeroing pass (nor do the lane-order ones: every lane writes its own). ``Permute``
     # says so to Dr.Jit, which then writes the P pixels of a lane in one kernel (plain scatters into a buffer that
     # an earlier scatter wrote make a kernel each: P launches)
-    img = [dr.empty(mi.Float, npix) for _ in range(5)]
+    img = [dr.empty(mi.Float, npix) if depth or c != 3 else None for c in range(5)]
     for k in range(P):
-        for c, v in enumerate((C[k].x, C[k].y, C[k].z, D[k], T[k])):
-            dr.scatter(img[c], v, pix[k], active=valid[k], mode=dr.ReduceMode.Permute)
+        for c, v in enumerate((C[k].x, C[k].y, C[k].z, D[k] if depth else None, T[k])):
+            if v is not None:
+                dr.scatter(img[c], v, pix[k], active=valid[k], mode=dr.ReduceMode.Permute)
     T_lane = dr.empty(mi.Float, n_lanes * P)
     last_lane = dr.empty(mi.UInt32, n_lanes * P)
     ArrayXf, ArrayXu = _array_types()
@@ -446,7 +450,8 @@ def blend_forward(geo: "mi.Float", col: "mi.Float", bins: Bins, frame: Frame, cf
 def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane, last_lane, g_img: list, n: int,
                    absgrad: bool = False, slots=None):
     """Gradients w.r.t. the Gaussians' features, from those packed per instance (``geo``, ``col``): (geo grads
-    (N*8), colour grads (N*4), evaluations (lazy UInt32)).
+    (N*8), colour grads (N*4), evaluations (lazy UInt32)). ``g_img``: the gradients of the forward's five images;
+    that of the depth sum None when the forward had none (its depth gradient is then zero and not computed).
 
     With ``absgrad`` the padding slots carry AbsGS's statistic: geo slot 7 the sum over pixels of |d L_pixel / d mx|,
     colour slot 3 that of |d L_pixel / d my| (gsplat's ``absgrad``)."""
@@ -464,7 +469,8 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
     last = dr.gather(ArrayXu, last_lane, lane, shape=(P, n_lanes), active=real)
     gpix, gT_times_T = [], []   # dL/d(r, g, b, depth sum), and dL/dT_final * T_final, per pixel
     for k in range(P):
-        gpix.append(mi.Vector4f(*[dr.gather(mi.Float, g_img[c], pix[k], active=valid[k]) for c in range(4)]))
+        gpix.append([dr.gather(mi.Float, g_img[c], pix[k], active=valid[k]) if g_img[c] is not None else None
+                     for c in range(4)])
         gT_times_T.append(dr.gather(mi.Float, g_img[4], pix[k], active=valid[k]) * Tf[k])
     inst = bins.gaussian
     alpha_min, alpha_max = cfg.alpha_min, cfg.alpha_max
@@ -513,7 +519,9 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
                 inv = dr.rcp(1.0 - a)
                 Ti = T[k] * inv                         # transmittance in front of this Gaussian
                 gc = gpix[k]
-                wgt = dr.fma(gc.x, c.x, dr.fma(gc.y, c.y, dr.fma(gc.z, c.z, gc.w * z)))
+                # (without a depth sum: fma(gb, cb, 0) is gb cb, the same gradients bit for bit)
+                wgt = dr.fma(gc[0], c.x, dr.fma(gc[1], c.y, gc[2] * c.z if gc[3] is None
+                                                 else dr.fma(gc[2], c.z, gc[3] * z)))
                 g_alpha = Ti * wgt - (acc[k] + gT_times_T[k]) * inv
                 aT = a * Ti
                 h = hit[k]
@@ -531,10 +539,11 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
                     abs_mx = abs_mx + dr.abs(g_pow * (ca * dx + cb * dy))
                     abs_my = abs_my + dr.abs(g_pow * (cc * dy + cb * dx))
                 g_o = g_o + dr.select(hw, g_alpha * Gs[k], 0.0)
-                g_z = dr.fma(gc.w, aT_h, g_z)
-                g_r = dr.fma(gc.x, aT_h, g_r)
-                g_g = dr.fma(gc.y, aT_h, g_g)
-                g_bl = dr.fma(gc.z, aT_h, g_bl)
+                if gc[3] is not None:
+                    g_z = dr.fma(gc[3], aT_h, g_z)
+                g_r = dr.fma(gc[0], aT_h, g_r)
+                g_g = dr.fma(gc[1], aT_h, g_g)
+                g_bl = dr.fma(gc[2], aT_h, g_bl)
             dx_s0 = dx * s0
             g_mx = -(ca * dx_s0 + cb * s_y)
             g_my = -(cc * s_y + cb * dx_s0)
@@ -567,17 +576,18 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
 
 
 class BlendOp(dr.CustomOp):
-    """Differentiable blend: inputs are per-Gaussian screen-space features, outputs (r, g, b, depth sum, T) images."""
+    """Differentiable blend: inputs are per-Gaussian screen-space features, outputs (r, g, b, depth sum, T) images
+    ((r, g, b, T) without ``with_depth``)."""
 
-    def eval(self, mean2d, conic, opacity, color, depth, bins, frame, cfg, stats):
+    def eval(self, mean2d, conic, opacity, color, depth, bins, frame, cfg, stats, with_depth):
         self.bins, self.frame, self.cfg, self.stats = bins, frame, cfg, stats
         self.n = dr.width(opacity)
         self.geo, self.col = _pack_instances(mean2d, conic, opacity, depth, color, bins.gaussian, cfg.alpha_min,
                                              bins.n_blended)
         self.slots = tile_slots(bins, frame.layout)
         img, self.T_lane, self.last_lane, stats.forward_evaluations = blend_forward(self.geo, self.col, bins,
-                                                                                    frame, cfg, self.slots)
-        return tuple(img)
+                                                                                    frame, cfg, self.slots, with_depth)
+        return tuple(x for x in img if x is not None)
 
     def forward(self):
         raise NotImplementedError("mi_gaussians: forward-mode derivatives of the blend are not implemented; "
@@ -587,7 +597,9 @@ class BlendOp(dr.CustomOp):
         n = self.n
         absgrad = self.stats.absgrad_requested
         g_img = [mi.Float(x) for x in self.grad_out()]
-        if all(g.state == dr.VarState.Literal for g in g_img[:4]):
+        if len(g_img) == 4:                      # (no depth sum)
+            g_img.insert(3, None)
+        if all(g.state == dr.VarState.Literal for g in g_img[:4] if g is not None):
             # No colour or depth gradient (a loss of the alpha alone): the loop's accumulated weights would stay a
             # literal zero, which Dr.Jit's loop recording rejects as a state variable that changes on re-recording.
             g_img[0] = dr.opaque(mi.Float, 0.0, self.frame.width * self.frame.height)
@@ -621,11 +633,16 @@ def make_frame(width: int, height: int, tiles_x: int, layout: LaneLayout | None 
 
 
 def blend(mean2d, conic, opacity, color, depth, bins: Bins, frame: Frame, cfg: RasterConfig,
-          stats: BlendStats | None = None):
-    """(r, g, b, depth-sum, T) images (H*W each); differentiable when any input has gradients enabled."""
+          stats: BlendStats | None = None, with_depth: bool = True):
+    """(r, g, b, depth-sum, T) images (H*W each); differentiable when any input has gradients enabled. Without
+    ``with_depth`` the depth sum is None, and neither pass computes it (the forward's loop then carries a quarter
+    fewer accumulators; r, g, b, T and every gradient are those with it, bit for bit)."""
     stats = BlendStats() if stats is None else stats
     if dr.grad_enabled(mean2d, conic, opacity, color, depth):
-        return dr.custom(BlendOp, mean2d, conic, opacity, color, depth, bins, frame, cfg, stats)
+        img = list(dr.custom(BlendOp, mean2d, conic, opacity, color, depth, bins, frame, cfg, stats, with_depth))
+        if not with_depth:
+            img.insert(3, None)
+        return tuple(img)
     geo, col = _pack_instances(mean2d, conic, opacity, depth, color, bins.gaussian, cfg.alpha_min)
-    img, _, _, stats.forward_evaluations = blend_forward(geo, col, bins, frame, cfg)
+    img, _, _, stats.forward_evaluations = blend_forward(geo, col, bins, frame, cfg, depth=with_depth)
     return tuple(img)
