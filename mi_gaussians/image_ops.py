@@ -27,7 +27,8 @@ traffic, so the layouts matter: images that a vertical walk reads are stored *ti
 stored row after row, the quantities of one image set interleaved), so that a SIMD packet walking down a column reads
 consecutive cache lines; horizontal walks read either layout and write the natural one.
 
-- forward: horizontal walk over x, y (natural) -> the five blurs' first pass (tiled, interleaved), and the L1 sum of
+- forward: horizontal walk over x, y (natural) -> the first pass of four blurs, of x, y, x^2 + y^2 and x y (tiled,
+  interleaved; s11 and s22 enter the map only as their sum, so one blur serves both), and the L1 sum of
   the fused training loss; vertical walk -> SSIM map sums (and the map), plus the derivative maps when gradients are
   needed (tiled). For the loss (a uniform incoming gradient, which only scales them) on the CPU that walk also blurs
   the derivative maps down the columns (``image_walk._sweep_twice``), so they are never stored unblurred.
@@ -43,7 +44,9 @@ Measured (llvm_ad_rgb, 2-core AVX-512 CPU, 800 x 800 x 3): the training loss (``
 ``mi_gaussians.optim.losses.photometric_loss`` calls it) forward + backward 21 ms (best) to 27 ms (median), of which
 19 ms in four kernels; SSIM alone without gradients 10 ms. Since its vertical walks are one (2026-11-30): 15-16 ms in
 three kernels against 17-18.5 for the four (400 x 400: 3.3-3.5 against 3.8-4.2 ms; 200 x 200: 1.1 against 1.3), the
-same gradients bit for bit and the loss up to the order of its sum.
+same gradients bit for bit and the loss up to the order of its sum. Four blurs instead of the reference's five
+(2026-11-30, fourteenth session): the loss and its gradient 0.93-0.97x at 400 x 400 and 0.95x at 200 x 200, equal to
+float rounding.
 """
 
 from __future__ import annotations
@@ -125,12 +128,15 @@ def _needed_coefs(need_img: bool, need_ref: bool) -> list[int]:
 
 
 def _ssim_terms(b, c1: float, c2: float, coefs: list[int]):
-    """The reference SSIM map (same operation order) and the requested derivative maps, from the five blurs."""
-    mu1, mu2, e11, e22, e12 = b
+    """The reference SSIM map and the requested derivative maps, from the four blurs: of x, y, x^2 + y^2 and x y.
+    (The reference blurs x^2 and y^2 apart, but uses them only through sigma1^2 + sigma2^2 = G*(x^2 + y^2) - mu1^2 -
+    mu2^2: one blur fewer, the same map up to float rounding.)"""
+    mu1, mu2, e_sq, e12 = b
     mu1_sq, mu2_sq, mu1_mu2 = mu1 * mu1, mu2 * mu2, mu1 * mu2
-    sigma1_sq, sigma2_sq, sigma12 = e11 - mu1_sq, e22 - mu2_sq, e12 - mu1_mu2
+    mu_sq = mu1_sq + mu2_sq
+    sigma12 = e12 - mu1_mu2
     a1, a2 = 2.0 * mu1_mu2 + c1, 2.0 * sigma12 + c2
-    b1, b2 = mu1_sq + mu2_sq + c1, sigma1_sq + sigma2_sq + c2
+    b1, b2 = mu_sq + c1, (e_sq - mu_sq) + c2
     s = (a1 * a2) / (b1 * b2)
     out = []
     if coefs:
@@ -156,13 +162,13 @@ def _forward(x, y, shape, weights, c1: float, c2: float, *, want_l1: bool = Fals
     "map": natural flat map (when want_map); "coef": _Planes of the derivative maps ``coefs`` (in that order;
     tiled and interleaved, or one natural _Planes per map)}."""
     Float = type(x)
-    h = _Planes.empty(Float, shape, "tiled", 5)
+    h = _Planes.empty(Float, shape, "tiled", 4)
 
     def finish_h(blurred, centre, yy, pp, ok):
         return blurred, ([dr.abs(centre[0] - centre[1])] if want_l1 else [])
 
     l1_sum = _sweep([_Planes(x, "natural"), _Planes(y, "natural")], shape, 1, weights,
-                    lambda a, b: (a, b, a * a, b * b, a * b), finish_h, [h], int(want_l1))
+                    lambda a, b: (a, b, dr.fma(a, a, b * b), a * b), finish_h, [h], int(want_l1))
     if coef_layout == "blurred" and coefs:
         # the derivative maps blurred down the columns in the same walk, never stored unblurred (the first half of
         # the backward, done here: the loss's incoming gradient only scales them, in the backward's last walk)
