@@ -489,12 +489,13 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
         bx = qb * dx
         dys = [my - pys[k] for k in range(P)]
         powers = [dr.fma(dys[k], dr.fma(qc, dys[k], bx), ax2) for k in range(P)]   # bit-identical to the forward
-        live = [valid[k] & (i < last[k]) for k in range(P)]      # pixels this instance can still contribute to
+        # pixels this instance can still contribute to (a pixel outside the image never hit: its last is its start)
+        live = [i < last[k] for k in range(P)]
 
         def backward_instance(T, acc, masked: bool):
             ca, cb, cc = (-2.0 / LOG2E) * qa, (-1.0 / LOG2E) * qb, (-2.0 / LOG2E) * qc   # the conic (a, b, c)
             T, acc = list(T), list(acc)
-            hit, alphas, Gs, unclamped = [], [], [], []
+            hit, alphas, unclamped = [], [], []
             for k in range(P):
                 power2 = powers[k]
                 G = dr.exp2(power2)
@@ -503,7 +504,6 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
                 h = live[k] & (alpha >= alpha_min) & (power2 <= 0)
                 hit.append(h)
                 alphas.append(alpha)
-                Gs.append(G)
                 unclamped.append(raw < alpha_max)
             # Unmasked (``masked`` False), every lane adds, zeros where none of its pixels was hit: on the LLVM
             # backend a mask makes the packet scatter branch on each lane's flag
@@ -513,7 +513,7 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
             # Per lane, the conic's and the mean's gradients are sums over its pixels of g_pow times 1, dy, dy^2
             # (dx is the lane's): three running sums, the products with dx and the conic once per instance.
             # (separate objects: Dr.Jit's += is in-place)
-            s0, s_y, s_yy, g_o, g_z, g_r, g_g, g_bl, abs_mx, abs_my = (mi.Float(0.0) for _ in range(10))
+            s0, s_y, s_yy, g_z, g_r, g_g, g_bl, abs_mx, abs_my = (mi.Float(0.0) for _ in range(9))
             for k in range(P):
                 a = alphas[k]
                 inv = dr.rcp(1.0 - a)
@@ -538,12 +538,14 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
                 if absgrad:
                     abs_mx = abs_mx + dr.abs(g_pow * (ca * dx + cb * dy))
                     abs_my = abs_my + dr.abs(g_pow * (cc * dy + cb * dx))
-                g_o = g_o + dr.select(hw, g_alpha * Gs[k], 0.0)
                 if gc[3] is not None:
                     g_z = dr.fma(gc[3], aT_h, g_z)
                 g_r = dr.fma(gc[0], aT_h, g_r)
                 g_g = dr.fma(gc[1], aT_h, g_g)
                 g_bl = dr.fma(gc[2], aT_h, g_bl)
+            # dL/d opacity = sum g_alpha G over the unclamped hits, which is s0 / opacity (their alpha is opacity G):
+            # one division per instance instead of a sum per pixel (equal to float rounding)
+            g_o = dr.select(op > 0.0, s0 / op, 0.0)
             dx_s0 = dx * s0
             g_mx = -(ca * dx_s0 + cb * s_y)
             g_my = -(cc * s_y + cb * dx_s0)
