@@ -522,15 +522,14 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
                 # (without a depth sum: fma(gb, cb, 0) is gb cb, the same gradients bit for bit)
                 wgt = dr.fma(gc[0], c.x, dr.fma(gc[1], c.y, gc[2] * c.z if gc[3] is None
                                                  else dr.fma(gc[2], c.z, gc[3] * z)))
-                g_alpha = Ti * wgt - (acc[k] + gT_times_T[k]) * inv
-                aT = a * Ti
+                g_alpha = Ti * wgt - acc[k] * inv      # (acc started at the final T's share, dL/dT_final T_final)
                 h = hit[k]
+                aT_h = dr.select(h, a, 0.0) * Ti         # alpha T of a hit, 0 otherwise: acc adds nothing then
                 T[k] = dr.select(h, Ti, T[k])
-                acc[k] = dr.select(h, dr.fma(wgt, aT, acc[k]), acc[k])
+                acc[k] = dr.fma(wgt, aT_h, acc[k])
                 hw = h & unclamped[k]
                 g_pow = dr.select(hw, g_alpha * a, 0.0)   # d alpha / d power = o G = alpha when not clamped
                 dy = dys[k]
-                aT_h = dr.select(h, aT, 0.0)
                 s0 = s0 + g_pow
                 gy = g_pow * dy
                 s_y = s_y + gy
@@ -570,8 +569,7 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
                             lambda *state: state, label="mi_gaussians.blend_backward.hit")
         return i, T, acc
 
-    state = (mi.UInt32(i0), tuple(mi.Float(Tf[k]) for k in range(P)),
-             tuple(dr.zeros(mi.Float, n_lanes) for _ in range(P)))
+    state = (mi.UInt32(i0), tuple(mi.Float(Tf[k]) for k in range(P)), tuple(gT_times_T))
     dr.while_loop(state, cond, body, label="mi_gaussians.blend_backward")
     evaluations = dr.sum(i0 - start) * P
     return ggeo, gcol, evaluations
