@@ -246,22 +246,33 @@ def _per_instance(packed: "mi.Float", stride: int, inst: "mi.UInt32", count=None
 SKIP_MARGIN = 1e-3   # log2 units (0.07 %): far above exp2's and log2's float error, so that the bound never skips a hit
 
 
-def _pack_geometry(mean2d, conic, opacity, depth, alpha_min: float) -> "mi.Float":
-    """[mx, my, qa, qb, qc, opacity, depth, lo] per Gaussian with (qa, qb, qc) = log2(e) (-a/2, -b, -c/2), so that
-    the Gaussian falloff is exp(power) = exp2(qa dx^2 + qb dx dy + qc dy^2), and ``lo`` = log2(alpha_min / opacity)
-    less :data:`SKIP_MARGIN` (``+inf`` at opacity 0): a pixel whose exponent is below it cannot reach alpha_min
-    (:attr:`LaneLayout.skip`; the exact test still decides every hit)."""
-    lo = (math.log2(alpha_min) - SKIP_MARGIN) - dr.log2(opacity)
+def _pack_geometry(mean2d, conic, opacity, depth, alpha_min: float, skip: bool = True) -> "mi.Float":
+    """[mx, my, qa, qb, qc, opacity, depth, last] per Gaussian with (qa, qb, qc) = log2(e) (-a/2, -b, -c/2), so that
+    the Gaussian falloff is exp(power) = exp2(qa dx^2 + qb dx dy + qc dy^2). ``last``, for a layout that skips
+    (:attr:`LaneLayout.skip`): ``lo`` = log2(alpha_min / opacity) less :data:`SKIP_MARGIN` (``+inf`` at opacity 0),
+    below which a pixel's exponent cannot reach alpha_min (the exact test still decides every hit); otherwise the
+    Gaussian's index, its bits as a float's (:func:`_record_gaussian`): the backward's scatter target comes with the
+    record instead of from a gather of the instance list."""
+    if skip:
+        last = (math.log2(alpha_min) - SKIP_MARGIN) - dr.log2(opacity)
+    else:
+        last = dr.reinterpret_array(mi.Float, dr.arange(mi.UInt32, dr.width(opacity)))
     return _pack([mean2d.x, mean2d.y, (-0.5 * LOG2E) * conic.x, -LOG2E * conic.y, (-0.5 * LOG2E) * conic.z,
-                  opacity, depth, lo], GEO)
+                  opacity, depth, last], GEO)
 
 
-def _pack_instances(mean2d, conic, opacity, depth, color, inst, alpha_min: float, count=None) -> tuple:
+def _record_gaussian(record_last: "mi.Float") -> "mi.UInt32":
+    """The Gaussian of a geometry record of a layout that does not skip (:func:`_pack_geometry`)."""
+    return dr.reinterpret_array(mi.UInt32, record_last)
+
+
+def _pack_instances(mean2d, conic, opacity, depth, color, inst, alpha_min: float, count=None,
+                    skip: bool = True) -> tuple:
     """The blend's inputs: the geometry and colour records (:func:`_pack_geometry`, [r, g, b, 0]) per instance of
-    the list ``inst`` (:func:`_per_instance`), evaluated."""
+    the list ``inst`` (:func:`_per_instance`), evaluated. ``skip``: the layout's (what the records' last entry is)."""
     # (packed, then copied, both records in one kernel each: a gather from a buffer with a pending scatter evaluates
     # it, so packing and copying one record after the other made four kernels)
-    packed_geo = _pack_geometry(mean2d, conic, opacity, depth, alpha_min)
+    packed_geo = _pack_geometry(mean2d, conic, opacity, depth, alpha_min, skip)
     packed_col = _pack([color.x, color.y, color.z], COL)
     dr.eval(packed_geo, packed_col)
     geo = _per_instance(packed_geo, GEO, inst, count)
@@ -483,7 +494,7 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
     def body(i, T, acc):
         i = i - 1
         f = dr.gather(ArrayXf, geo, i, shape=(GEO, n_lanes))
-        mx, my, qa, qb, qc, op, z, lo = f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7]
+        mx, my, qa, qb, qc, op, z, lo = f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7]   # (lo: see below)
         dx = mx - px
         ax2 = qa * dx * dx
         bx = qb * dx
@@ -508,7 +519,8 @@ def blend_backward(geo, col, bins: Bins, frame: Frame, cfg: RasterConfig, T_lane
             # Unmasked (``masked`` False), every lane adds, zeros where none of its pixels was hit: on the LLVM
             # backend a mask makes the packet scatter branch on each lane's flag
             active = _any(hit) if masked else True
-            g = dr.gather(mi.UInt32, inst, i, active=active)
+            # (the records of a layout that does not skip carry their Gaussian where the others carry lo)
+            g = dr.gather(mi.UInt32, inst, i, active=active) if layout.skip else _record_gaussian(lo)
             c = dr.gather(mi.Vector4f, col, i, active=active)
             # Per lane, the conic's and the mean's gradients are sums over its pixels of g_pow times 1, dy, dy^2
             # (dx is the lane's): three running sums, the products with dx and the conic once per instance.
@@ -583,7 +595,7 @@ class BlendOp(dr.CustomOp):
         self.bins, self.frame, self.cfg, self.stats = bins, frame, cfg, stats
         self.n = dr.width(opacity)
         self.geo, self.col = _pack_instances(mean2d, conic, opacity, depth, color, bins.gaussian, cfg.alpha_min,
-                                             bins.n_blended)
+                                             bins.n_blended, frame.layout.skip)
         self.slots = tile_slots(bins, frame.layout)
         img, self.T_lane, self.last_lane, stats.forward_evaluations = blend_forward(self.geo, self.col, bins,
                                                                                     frame, cfg, self.slots, with_depth)
@@ -643,6 +655,7 @@ def blend(mean2d, conic, opacity, color, depth, bins: Bins, frame: Frame, cfg: R
         if not with_depth:
             img.insert(3, None)
         return tuple(img)
-    geo, col = _pack_instances(mean2d, conic, opacity, depth, color, bins.gaussian, cfg.alpha_min)
+    geo, col = _pack_instances(mean2d, conic, opacity, depth, color, bins.gaussian, cfg.alpha_min,
+                               skip=frame.layout.skip)
     img, _, _, stats.forward_evaluations = blend_forward(geo, col, bins, frame, cfg, depth=with_depth)
     return tuple(img)
