@@ -209,7 +209,6 @@ def bin_gaussians(depth: "mi.Float", rect: tuple, tile_count: "mi.UInt32", tiles
     hist = dr.zeros(mi.UInt32, n_tiles + 1)
     dr.scatter_add(hist, mi.UInt32(1), sorted_tile + 1, active=sorted_tile < n_tiles)   # (the sentinel: not valid)
     tile_start = dr.cumsum(hist)                     # inclusive scan of the shifted histogram = [0, starts..., total]
-    # (``gaussian`` stays lazy: the blend's copy of the records reads it once, in its own kernel)
-    dr.eval(tile_start)
+    dr.eval(gaussian, tile_start)
     return Bins(gaussian=gaussian, tile_start=tile_start, n_instances=total, tiles_x=tiles_x, tiles_y=tiles_y,
                 fits=fits, n_blended=dr.gather(mi.UInt32, tile_start, mi.UInt32(n_tiles)), tile_counts=hist)
