@@ -55,6 +55,11 @@ LANES = ("balanced", "fixed")
 #: ``OptimConfig.coarse_to_fine``: 'off' (every iteration at full resolution, the reference), 'spectrum'
 #: (DashGaussian's schedule from the images' Fourier spectra: optim/resolution.py).
 COARSE_TO_FINE = ("off", "spectrum")
+#: ``OptimConfig.row_order``: the order of the model's rows (Gaussians) while it trains (optim/row_order.py):
+#: 'spatial', sorted by where they are after each densification, so that the Gaussians a tile blends lie near one
+#: another in memory; 'creation', the order densification makes them in (the reference's). The speed only: the
+#: same renders of the same model, a densification's random draws falling to other rows.
+ROW_ORDERS = ("spatial", "creation")
 #: ``--depth-weight W`` decays from W to W / DEPTH_WEIGHT_DECAY (the 2024 reference's 1.0 to 0.01).
 DEPTH_WEIGHT_DECAY = 100.0
 
@@ -158,6 +163,9 @@ class OptimConfig:
     alpha_weight: float = 0.0                # images with alpha (an object on an empty background): loss +=
                                              # alpha_weight * L1(rendered alpha, the image's alpha), so that a
                                              # Gaussian of the background's colour in empty space is not free
+    row_order: str = "spatial"               # ROW_ORDERS: the model's rows sorted by where the Gaussians are (a Morton
+                                             # code of their means) at the start and after each refinement, or kept in
+                                             # the order densification makes them ('creation', the reference's)
     step_on_refine: bool = False             # also take the Adam step on the iterations that densify or reset
                                              # opacities, before the refinement (gsplat's order); false: the
                                              # reference's, whose rebuilt parameters have no gradient there
@@ -457,7 +465,7 @@ RULES: dict[str, "Range | tuple[str, ...]"] = {
                                                  "scaling_lr", "rotation_lr", "exposure_lr_init", "exposure_lr_final",
                                                  "exposure_grid_lr")},
     "optim.pose_opt_lr": Range(0, 0.1),
-    "optim.coarse_to_fine": COARSE_TO_FINE, "optim.exposure": EXPOSURES, "optim.ssim_padding": SSIM_PADDINGS, "optim.exposure_grid": Range(2, counts=(3, 3)),
+    "optim.coarse_to_fine": COARSE_TO_FINE, "optim.row_order": ROW_ORDERS, "optim.exposure": EXPOSURES, "optim.ssim_padding": SSIM_PADDINGS, "optim.exposure_grid": Range(2, counts=(3, 3)),
     "densify.densification_interval": _COUNT, "densify.split_count": _COUNT,
     "densify.split_scale_divisor": _POSITIVE, "densify.min_opacity": Range(0, 1, open_high=True),
     "densify.reset_opacity": _OPEN_FRACTION, "densify.weight_prune": Range(0, 1),

@@ -205,6 +205,11 @@ class DefaultStrategy(Strategy):
             setattr(state, name, dr.gather(tp, getattr(state, name), idx))
         dr.eval(*(getattr(state, name) for name in DensifyState.DRJIT_STRUCT))
 
+    def permute_state(self, state: DensifyState, rows) -> None:
+        for name, tp in DensifyState.DRJIT_STRUCT.items():
+            setattr(state, name, dr.gather(tp, getattr(state, name), rows))
+        dr.make_opaque(*(getattr(state, name) for name in DensifyState.DRJIT_STRUCT))
+
     def export_state(self, state: DensifyState) -> tuple[dict[str, np.ndarray], dict]:
         arrays = {"grad_accum": np.array(state.grad_accum, dtype=np.float32),
                   "denom": np.array(state.denom, dtype=np.float32),

@@ -103,6 +103,9 @@ class MCMCStrategy(Strategy):
     def initialize_state(self, n: int) -> MCMCState:
         return MCMCState()
 
+    def permute_state(self, state: MCMCState, rows) -> None:
+        """(No per-row statistics.)"""
+
     def export_state(self, state: MCMCState) -> tuple[dict[str, np.ndarray], dict]:
         return {}, {"kind": "mcmc", "seed": self.seed, "draws": state.draws}
 

@@ -99,6 +99,11 @@ class Strategy:
         """Keep the first ``n`` rows of the state (``row_padding`` strategies)."""
         raise NotImplementedError(f"{type(self).__name__} does not pad its state")
 
+    def permute_state(self, state, rows) -> None:
+        """Put the per-row statistics of ``state`` in the order ``rows`` (a permutation: new row -> old row, a
+        ``mi.UInt32``), as :func:`~.row_order.order_rows` does with the parameters' rows."""
+        raise NotImplementedError(f"{type(self).__name__} does not reorder its state")
+
     def step_pre_backward(self, params, state, step: int | None, out, collect: bool = True) -> None:
         """Called after the render of iteration ``step`` and before ``dr.backward``; a frozen step calls it with
         ``step=None`` while it records (so it must do device work only, the same on every iteration). ``collect``

@@ -39,6 +39,7 @@ from .adam import GaussianAdam
 from .compensation import make_compensation
 from .guard import TrainingDiverged  # noqa: F401  (raised here; importers take it from this module too)
 from .pose import PoseDeltas, pivot_depths
+from .row_order import order_rows
 from .loop_state import History, LoopStats, Pending, TrainingStopped, ViewSampler  # noqa: F401  (TrainingStopped:
 # raised here, and importers take it from this module)
 from .strategies import empty_background, initial_gaussians, make_strategy
@@ -85,6 +86,8 @@ class Trainer:
         self.params = GaussianAdam(initial_gaussians(ds, cfg.optim.sh_degree, self.strategy, seed=cfg.seed + 3),
                                    cfg.optim, self.extent)
         self.strategy_state = self.strategy.initialize_state(self.params.n)
+        if cfg.optim.row_order == "spatial":
+            order_rows(self.params, self.strategy, self.strategy_state)
         self.exposure = make_compensation(cfg.optim, len(ds.train))
         self.poses = None
         if cfg.optim.pose_opt:
@@ -275,7 +278,9 @@ class Trainer:
         step, self._refine_at = self._refine_at, None
         self.trim()
         n_before = self.params.n
-        self.strategy.refine(self.params, self.strategy_state, step)
+        info = self.strategy.refine(self.params, self.strategy_state, step)
+        if self.cfg.optim.row_order == "spatial" and (info.densified or info.pruned or info.relocated or info.added):
+            order_rows(self.params, self.strategy, self.strategy_state)
         if self.capacity is not None and self.params.n != n_before:
             self._set_capacity_after_traced(round(self._needed * self.params.n / n_before))
 
