@@ -159,3 +159,23 @@ def test_row_order_is_a_setting():
     with pytest.raises(Exception, match="row_order"):
         TrainConfig().with_settings(["optim.row_order=random"]).validate()
     assert dataclasses.replace(OptimConfig(), row_order="creation").row_order == "creation"
+
+
+def test_sorting_another_model_compiles_nothing_new():
+    """A refinement's sort of the rows: its kernels do not depend on the model's size or box (as literals they would
+    be compiled anew at every refinement of a run)."""
+    from kernel_log import KernelLog
+
+    strategy = DefaultStrategy(DensifyConfig(), extent=2.0)
+    models = []
+    for seed, n, scale in ((6, 300, 1.0), (7, 517, 30.0)):
+        params, _ = sf.random_scene(seed=seed, n=n, sh_degree=1)
+        params["means"] = (params["means"] * scale).astype(np.float32)
+        opt = GaussianAdam(mig.Gaussians.from_numpy(**params), OptimConfig(), extent=2.0)
+        models.append((opt, strategy.initialize_state(opt.n)))
+    with KernelLog() as log:
+        for opt, state in models:
+            order_rows(opt, strategy, state)
+            dr.eval(opt["means"], state.reset_done)
+            log.cut()
+    assert log.windows[1] and not log.unseen(1), log.unseen(1)

@@ -46,9 +46,10 @@ def _box(means: "mi.Float", n: int) -> np.ndarray:
     """(3, 2): per axis, the low and high :data:`PERCENTILES` of the finite means of every ``n / SAMPLE``-th row (one
     small readback)."""
     step = max(1, n // SAMPLE)
-    rows = dr.arange(mi.UInt32, -(-n // step)) * step
-    sample = np.array(dr.gather(mi.Float, means, dr.repeat(rows * 3, 3) + dr.tile(dr.arange(mi.UInt32, 3),
-                                                                                 dr.width(rows))))
+    # (the step and the box below as opaque values: as literals, each refinement's would compile its kernels anew)
+    rows = dr.arange(mi.UInt32, -(-n // step)) * dr.opaque(mi.UInt32, 3 * step)
+    sample = np.array(dr.gather(mi.Float, means, dr.repeat(rows, 3) + dr.tile(dr.arange(mi.UInt32, 3),
+                                                                             dr.width(rows))))
     sample = sample.reshape(-1, 3).astype(np.float64)
     box = np.zeros((3, 2))
     for axis in range(3):
@@ -70,7 +71,8 @@ def morton_codes(means: "mi.Float") -> "mi.UInt32":
     cells = float(1 << BITS)
     for axis in range(3):
         lo, hi = (float(v) for v in box[axis])
-        scale = cells / (hi - lo) if hi > lo else 0.0
+        scale = dr.opaque(mi.Float, cells / (hi - lo) if hi > lo else 0.0)
+        lo = dr.opaque(mi.Float, lo)
         x = dr.gather(mi.Float, means, idx + axis)
         cell = mi.UInt32(fclamp((x - lo) * scale, 0.0, cells - 1.0))
         code = code | (_spread_bits(dr.select(dr.isfinite(x), cell, 0)) << axis)
