@@ -156,7 +156,9 @@ def test_row_order_is_a_setting():
     assert OptimConfig().row_order == "spatial"
     cfg = TrainConfig().with_settings(["optim.row_order=creation"])
     assert cfg.optim.row_order == "creation"
-    with pytest.raises(Exception, match="row_order"):
+    from mi_gaussians.setting_values import SettingError
+
+    with pytest.raises(SettingError, match="optim.row_order.*not one of spatial, creation"):
         TrainConfig().with_settings(["optim.row_order=random"]).validate()
     assert dataclasses.replace(OptimConfig(), row_order="creation").row_order == "creation"
 
