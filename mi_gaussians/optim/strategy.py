@@ -64,6 +64,11 @@ class StepInfo:
     relocated: int = 0        # dead Gaussians moved onto live ones (MCMC)
     added: int = 0            # Gaussians added by sampling live ones (MCMC)
 
+    @property
+    def rows_changed(self) -> bool:
+        """Whether rows were added, removed or moved (not only values changed, as by an opacity reset)."""
+        return bool(self.densified or self.pruned or self.relocated or self.added)
+
 
 class Strategy:
     """Base class of densification strategies (see the module docstring)."""

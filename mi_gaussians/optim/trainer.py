@@ -86,8 +86,7 @@ class Trainer:
         self.params = GaussianAdam(initial_gaussians(ds, cfg.optim.sh_degree, self.strategy, seed=cfg.seed + 3),
                                    cfg.optim, self.extent)
         self.strategy_state = self.strategy.initialize_state(self.params.n)
-        if cfg.optim.row_order == "spatial":
-            order_rows(self.params, self.strategy, self.strategy_state)
+        self._sort_rows()
         self.exposure = make_compensation(cfg.optim, len(ds.train))
         self.poses = None
         if cfg.optim.pose_opt:
@@ -278,11 +277,16 @@ class Trainer:
         step, self._refine_at = self._refine_at, None
         self.trim()
         n_before = self.params.n
-        info = self.strategy.refine(self.params, self.strategy_state, step)
-        if self.cfg.optim.row_order == "spatial" and (info.densified or info.pruned or info.relocated or info.added):
-            order_rows(self.params, self.strategy, self.strategy_state)
+        if self.strategy.refine(self.params, self.strategy_state, step).rows_changed:
+            self._sort_rows()
         if self.capacity is not None and self.params.n != n_before:
             self._set_capacity_after_traced(round(self._needed * self.params.n / n_before))
+
+    def _sort_rows(self) -> None:
+        """The model's rows, their moments and the strategy's statistics in space order (``optim.row_order``
+        'spatial'; :mod:`.row_order`), at the start and after each refinement that changed rows."""
+        if self.cfg.optim.row_order == "spatial":
+            order_rows(self.params, self.strategy, self.strategy_state)
 
     def _diverged(self, loss: float, step: int, view: int) -> TrainingDiverged:
         return TrainingDiverged(f"the loss became {loss} at iteration {step} (view {self.ds.train[view].name}); the "
