@@ -149,6 +149,13 @@ def _count(mask) -> int:
     return int(c[0]) if dr.is_array_v(c) else int(c)
 
 
+def _take_rows(state: DensifyState, rows: "mi.UInt32") -> list:
+    """Replace every per-row field of ``state`` by its rows ``rows`` (lazy gathers); returns the new fields."""
+    for name, tp in DensifyState.DRJIT_STRUCT.items():
+        setattr(state, name, dr.gather(tp, getattr(state, name), rows))
+    return [getattr(state, name) for name in DensifyState.DRJIT_STRUCT]
+
+
 class DefaultStrategy(Strategy):
     """The reference 3DGS densification (see the module docstring). ``extent``: the scene extent
     (``Dataset.scene_extent`` under the run's ``data.extent``); ``seed``: of the split samples; ``white_background``:
@@ -200,15 +207,10 @@ class DefaultStrategy(Strategy):
 
     def trim_state(self, state: DensifyState, n: int) -> None:
         """The first ``n`` rows of the statistics and reset marks."""
-        idx = dr.arange(mi.UInt32, n)
-        for name, tp in DensifyState.DRJIT_STRUCT.items():
-            setattr(state, name, dr.gather(tp, getattr(state, name), idx))
-        dr.eval(*(getattr(state, name) for name in DensifyState.DRJIT_STRUCT))
+        dr.eval(*_take_rows(state, dr.arange(mi.UInt32, n)))
 
     def permute_state(self, state: DensifyState, rows) -> None:
-        for name, tp in DensifyState.DRJIT_STRUCT.items():
-            setattr(state, name, dr.gather(tp, getattr(state, name), rows))
-        dr.make_opaque(*(getattr(state, name) for name in DensifyState.DRJIT_STRUCT))
+        dr.make_opaque(*_take_rows(state, rows))
 
     def export_state(self, state: DensifyState) -> tuple[dict[str, np.ndarray], dict]:
         arrays = {"grad_accum": np.array(state.grad_accum, dtype=np.float32),
